@@ -1,0 +1,3 @@
+from relightcli.cli import main
+
+raise SystemExit(main())
