@@ -8,11 +8,28 @@ azimuth phi = 2 pi (u - 0.5), direction
 
 The centre column (u = 0.5) is -Z (what the camera looks at), u = 0.75 is +X, u = 0 and 1
 are +Z (behind the camera). Values are linear RGB radiance.
+
+Environment maps in memory are plain (H, 2H, 3) float32 arrays of linear radiance, finite and
+>= 0 (`validate_envmap` makes them so). A texel holds constant radiance over its cell, so the
+energy of a map is sum(L * texel_solid_angles) and every resampling here keeps it.
 """
 
 from __future__ import annotations
 
+import math
+import warnings
+
 import numpy as np
+import scipy.sparse
+
+from relightcli.errors import InputError, RelightWarning, UsageError
+from relightcli.io.images import read_image
+
+ENVMAP_MAX_PIXELS = 16384 * 8192
+_MAX_STOPS = 64
+_FIX_ASPECT = "use an equirectangular (latitude-longitude) map with width = 2 x height"
+# Rec. 709 / sRGB primaries: luminance of linear RGB
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def uv_to_direction(u, v):
@@ -67,3 +84,324 @@ def texel_solid_angles(height: int, width: int):
     edges = np.pi * np.arange(height + 1) / height
     rows = (2.0 * np.pi / width) * (np.cos(edges[:-1]) - np.cos(edges[1:]))
     return np.repeat(rows[:, None], width, axis=1)
+
+
+# --- validation and loading -----------------------------------------------------------------
+
+def _repair_counts(env):
+    """Counts of NaN, +Inf, -Inf and negative finite values in a float32 array."""
+    return {
+        "NaN": int(np.count_nonzero(np.isnan(env))),
+        "+Inf": int(np.count_nonzero(np.isposinf(env))),
+        "-Inf": int(np.count_nonzero(np.isneginf(env))),
+        "negative": int(np.count_nonzero(np.isfinite(env) & (env < 0))),
+    }
+
+
+def _repair_texels(env, counts, path):
+    """Set NaN, -Inf and negatives to 0 and +Inf to the largest finite value (0 if none);
+    warn once with the count of each kind."""
+    finite = np.isfinite(env)
+    largest = float(env[finite].max()) if finite.any() else 0.0
+    largest = max(largest, 0.0)
+    repaired = np.where(np.isposinf(env), np.float32(largest), env)
+    repaired = np.where(np.isnan(repaired) | (repaired < 0), np.float32(0.0), repaired)
+    where = "" if path is None else f"{path}: "
+    found = ", ".join(f"{n} {kind}" for kind, n in counts.items())
+    warnings.warn(
+        f"{where}environment map had {found} values; set NaN, -Inf and negatives to 0 and "
+        f"+Inf to the largest finite value ({largest:g})", RelightWarning, stacklevel=3)
+    return repaired.astype(np.float32)
+
+
+def validate_envmap(env, path=None):
+    """Check an environment map's shape and repair its texels.
+
+    env: (H, W, 3) array of linear radiance with W = 2H (a 2x1 map is valid). path: the file
+    it came from, named in messages. Returns (H, W, 3) float32, finite and >= 0; NaN, -Inf and
+    negative values become 0, +Inf the largest finite value of the map (0 if it has none),
+    with one RelightWarning that counts each kind. All-black maps are allowed.
+    Raises InputError for any other shape.
+    """
+    env = np.asarray(env)
+    if env.ndim != 3 or env.shape[2] != 3 or env.shape[0] == 0:
+        raise InputError(f"environment map must be an (H, W, 3) RGB image, got shape "
+                         f"{env.shape}", path=path, fix=_FIX_ASPECT)
+    height, width = env.shape[:2]
+    if width != 2 * height:
+        raise InputError(f"environment map is {width}x{height} (width x height), not 2:1",
+                         path=path, fix=_FIX_ASPECT)
+    env = np.array(env, dtype=np.float32)
+    counts = _repair_counts(env)
+    if any(counts.values()):
+        env = _repair_texels(env, counts, path)
+    return env
+
+
+def load_envmap(path, *, rotate_deg=0.0, exposure_ev=0.0, max_pixels=ENVMAP_MAX_PIXELS):
+    """Read an equirectangular environment map from a file.
+
+    .hdr and .exr hold linear radiance. An 8/16-bit file (PNG, JPEG, TIFF) is decoded from
+    sRGB by `read_image` and accepted with a RelightWarning: its clipped highlights cannot
+    light like an HDR. Then `validate_envmap`, `rotate_envmap` by `rotate_deg` degrees and
+    `expose` by `exposure_ev` stops. Returns (H, 2H, 3) float32 linear radiance.
+    Raises InputError when the file cannot be read or is not 2:1.
+    """
+    image = read_image(path, max_pixels=max_pixels)
+    if image.encoded:
+        warnings.warn(
+            f"{path}: {image.bits}-bit environment map read as sRGB and decoded to linear; its "
+            "clipped highlights (sun, lamps) cannot light like an HDR: use an .hdr or .exr map "
+            "for faithful lighting", RelightWarning, stacklevel=2)
+    env = validate_envmap(image.rgb, path=path)
+    if rotate_deg:
+        env = rotate_envmap(env, rotate_deg)
+    if exposure_ev:
+        env = expose(env, exposure_ev)
+    return env
+
+
+# --- rotation and exposure --------------------------------------------------------------------
+
+def _finite_number(value, name, fix):
+    value = float(value)
+    if not math.isfinite(value):
+        raise UsageError(f"{name} must be a finite number, got {value}", fix=fix)
+    return value
+
+
+def rotate_envmap(env, degrees):
+    """Turn the environment about +Y by `degrees`, counter-clockwise seen from above.
+
+    env: (H, W, 3) float32 linear radiance. Returns a new (H, W, 3) float32 map: exact
+    (np.roll) when the turn is a whole number of texels, otherwise linearly interpolated in
+    u (periodically), which keeps every row's energy. Rotating by 360 is the identity.
+    """
+    degrees = _finite_number(degrees, "rotation", "give the rotation in degrees, e.g. 90")
+    env = np.asarray(env, dtype=np.float32)
+    width = env.shape[1]
+    # Counter-clockwise seen from +Y takes +X (phi = pi/2) toward -Z (phi = 0): phi drops by
+    # alpha. The radiance arriving from phi now arrives from phi - alpha, so the new map is
+    # new(phi) = old(phi + alpha), and with phi = 2 pi (u - 1/2): new(u) = old(u + alpha/2pi),
+    # i.e. new[:, j] = old[:, j + s] with s = W alpha / 360 texels: a roll by -s.
+    shift = (degrees / 360.0 * width) % width
+    whole = round(shift)
+    if abs(shift - whole) < 1e-9:
+        return np.roll(env, -whole, axis=1)
+    low = math.floor(shift)
+    frac = np.float32(shift - low)
+    return ((1 - frac) * np.roll(env, -low, axis=1)
+            + frac * np.roll(env, -(low + 1), axis=1)).astype(np.float32)
+
+
+def expose(env, ev):
+    """Scale radiance by 2 ** ev (exposure in stops). (H, W, 3) float32 -> same."""
+    ev = _finite_number(ev, "exposure", "give the exposure in stops, e.g. -1.5")
+    if abs(ev) > _MAX_STOPS:
+        # beyond this float32 radiance overflows to Inf or underflows to 0
+        raise UsageError(f"exposure of {ev:g} stops is outside +-{_MAX_STOPS}",
+                         fix="give the exposure in stops, e.g. -1.5")
+    return (np.asarray(env, dtype=np.float32) * np.float32(2.0 ** ev)).astype(np.float32)
+
+
+# --- resampling ---------------------------------------------------------------------------------
+
+def _cell_edges_u(width):
+    """Column edges in u, (width + 1,) float64 from 0 to 1."""
+    return np.arange(width + 1, dtype=np.float64) / width
+
+
+def _cell_edges_t(height):
+    """Row edges in t = (1 - cos theta) / 2, (height + 1,) float64 from 0 to 1.
+
+    Solid angle is uniform in (u, t): d omega = 4 pi du dt, so area averages in (u, t) are
+    radiance averages weighted by solid angle.
+    """
+    return 0.5 * (1.0 - np.cos(np.pi * np.arange(height + 1, dtype=np.float64) / height))
+
+
+def _area_matrix(edges_out, edges_in):
+    """Sparse (n_out, n_in) matrix of overlap(out cell, in cell) / length(out cell).
+
+    Both edge arrays increase from the same start to the same end. Applied to a piecewise-
+    constant function it gives the exact average of that function over each output cell.
+    """
+    merged = np.union1d(edges_in, edges_out)
+    lengths = np.diff(merged)
+    middles = 0.5 * (merged[:-1] + merged[1:])
+    n_in, n_out = len(edges_in) - 1, len(edges_out) - 1
+    rows = np.clip(np.searchsorted(edges_out, middles, side="right") - 1, 0, n_out - 1)
+    cols = np.clip(np.searchsorted(edges_in, middles, side="right") - 1, 0, n_in - 1)
+    weights = lengths / np.diff(edges_out)[rows]
+    return scipy.sparse.csr_matrix((weights, (rows, cols)), shape=(n_out, n_in))
+
+
+def resample_envmap(env, height):
+    """Area-resample a map to (height, 2 * height), keeping its energy exactly.
+
+    env: (H, 2H, 3) float linear radiance. Each output texel is the solid-angle-weighted mean
+    of the input texels it overlaps (the map is constant per texel), so the integral of
+    radiance x solid angle is unchanged, down (e.g. to 16x32) or up (blocks, no new detail).
+    Returns (height, 2 * height, 3) float32.
+    """
+    if int(height) != height or height < 1:
+        raise UsageError(f"environment map height must be a whole number >= 1, got {height}",
+                         fix="give a height such as 16, 64 or 256")
+    env = np.asarray(env, dtype=np.float64)
+    in_height, in_width = env.shape[:2]
+    height, width = int(height), 2 * int(height)
+    rows = _area_matrix(_cell_edges_t(height), _cell_edges_t(in_height))
+    cols = _area_matrix(_cell_edges_u(width), _cell_edges_u(in_width))
+    # rows first: (height, W * 3); then columns on the transposed (W, height * 3)
+    by_rows = (rows @ env.reshape(in_height, in_width * 3)).reshape(height, in_width, 3)
+    by_cols = cols @ by_rows.transpose(1, 0, 2).reshape(in_width, height * 3)
+    return by_cols.reshape(width, height, 3).transpose(1, 0, 2).astype(np.float32)
+
+
+_BINOMIAL = {-2: 1.0 / 16.0, -1: 4.0 / 16.0, 1: 4.0 / 16.0, 2: 1.0 / 16.0}  # centre: 6/16
+
+
+def _blur_u(env):
+    """Periodic 5-tap binomial blur along u; keeps each row's sum. (H, W, 3) -> same."""
+    return 0.375 * env + sum(k * np.roll(env, offset, axis=1) for offset, k in _BINOMIAL.items())
+
+
+def _blur_v(env):
+    """5-tap binomial blur along v that keeps both constants and energy exactly.
+
+    Rows have different solid angles, so a plain blur of radiance would carry energy from
+    the large equator rows into the tiny pole rows and back (a point light in the top row
+    gains 3x). Instead the move from row i to row j has weight g_k min(W_i, W_j) / W_i
+    (Metropolis, W = row solid angle, g the binomial weight of offset k = j - i) and the rest
+    stays put: rows of weights sum to 1 (constants kept) and W_i K_ij is symmetric (energy
+    kept). Across a pole the neighbour rows are those on the other side, half a turn away
+    (row -1 is row 0 rolled by W/2). Needs H >= 2. (H, W, 3) float64 -> same.
+    """
+    height, width = env.shape[:2]
+    row_weights = texel_solid_angles(height, width)[:, 0]
+    rows = np.arange(height)
+    blurred = env.copy()
+    for offset, g in _BINOMIAL.items():
+        target = rows + offset
+        over_pole = (target < 0) | (target >= height)
+        target = np.where(target < 0, -1 - target, target)
+        target = np.where(target >= height, 2 * height - 1 - target, target)
+        neighbours = env[target]
+        neighbours[over_pole] = np.roll(neighbours[over_pole], width // 2, axis=1)
+        move = g * np.minimum(row_weights, row_weights[target]) / row_weights
+        blurred += move[:, None, None] * (neighbours - env)
+    return blurred
+
+
+def gaussian_pyramid_downsample(env, height):
+    """Downsample by a Gaussian pyramid to (height, 2 * height), as the paper prepares its
+    ground-truth light (16x32) for the lighting loss.
+
+    env: (H, 2H, 3) float linear radiance, H >= height. Each level blurs with the 5-tap
+    binomial kernel (periodic in u; across the poles in v, weighted by solid angle, see
+    `_blur_v`) and then halves the height by `resample_envmap`; a last area step reaches
+    `height` when H / height is not a power of 2. Constant maps stay constant and the energy
+    (radiance x solid angle) is kept exactly. Returns (height, 2 * height, 3) float32.
+    """
+    env = np.asarray(env, dtype=np.float64)
+    if int(height) != height or not 1 <= height <= env.shape[0]:
+        raise UsageError(f"pyramid target height must be a whole number in 1..{env.shape[0]}, "
+                         f"got {height}", fix="use resample_envmap to upsample")
+    while env.shape[0] >= 2 * height:
+        env = resample_envmap(_blur_v(_blur_u(env)), env.shape[0] // 2).astype(np.float64)
+    if env.shape[0] != height:
+        env = resample_envmap(env, height)
+    return env.astype(np.float32)
+
+
+# --- looking up and viewing -----------------------------------------------------------------
+
+def lookup_bilinear(env, u, v):
+    """Bilinear radiance at texel coordinates (u, v), periodic in u, clamped in v.
+
+    env: (H, W, 3) linear radiance. u, v: arrays of the same shape (...). Returns (..., 3)
+    float32. Texel centres (u, v) = ((j + 0.5) / W, (i + 0.5) / H) return the texel itself.
+    """
+    env = np.asarray(env, dtype=np.float32)
+    height, width = env.shape[:2]
+    x = np.asarray(u, dtype=np.float64) * width - 0.5
+    y = np.clip(np.asarray(v, dtype=np.float64) * height - 0.5, 0.0, height - 1.0)
+    col0 = np.floor(x)
+    fx = (x - col0)[..., None]
+    col0 = col0.astype(np.int64) % width
+    col1 = (col0 + 1) % width
+    row0 = np.minimum(np.floor(y).astype(np.int64), max(height - 2, 0))
+    row1 = np.minimum(row0 + 1, height - 1)
+    fy = (y - row0)[..., None]
+    top = (1 - fx) * env[row0, col0] + fx * env[row0, col1]
+    bottom = (1 - fx) * env[row1, col0] + fx * env[row1, col1]
+    return ((1 - fy) * top + fy * bottom).astype(np.float32)
+
+
+def view_directions(*, width, height, fov_deg=60.0, yaw_deg=0.0):
+    """Unit ray directions of a pinhole camera at the origin, (height, width, 3) float64.
+
+    At yaw 0 it looks toward -Z with +Y up and +X to the right; `fov_deg` is the horizontal
+    field of view, pixels are square. `yaw_deg` turns the camera about +Y counter-clockwise
+    seen from above (the same sense as `rotate_envmap`): yaw 90 looks toward -X.
+    """
+    fov_deg = _finite_number(fov_deg, "field of view", "give a field of view in degrees")
+    if not 0.0 < fov_deg < 180.0 or width < 1 or height < 1:
+        raise UsageError(f"need 0 < field of view < 180 degrees and a size >= 1x1, got "
+                         f"{fov_deg} degrees and {width}x{height}", fix="e.g. --fov 60")
+    half_width = math.tan(math.radians(fov_deg) / 2.0)
+    # pixel centres on the image plane z = -1 (row 0 is the top)
+    x = (2.0 * (np.arange(width) + 0.5) / width - 1.0) * half_width
+    y = (1.0 - 2.0 * (np.arange(height) + 0.5) / height) * half_width * height / width
+    xx, yy = np.meshgrid(x, y)
+    # rotate about +Y: R_y(a) takes +X to (cos a, 0, -sin a)
+    a = math.radians(_finite_number(yaw_deg, "yaw", "give the yaw in degrees"))
+    directions = np.stack([math.cos(a) * xx - math.sin(a), yy,
+                           -math.sin(a) * xx - math.cos(a)], axis=-1)
+    return directions / np.linalg.norm(directions, axis=-1, keepdims=True)
+
+
+def environment_view(env, *, width, height, fov_deg=60.0, yaw_deg=0.0):
+    """What a pinhole camera at the origin sees of the environment (the `--background env`
+    image): see `view_directions` for the camera. env: (H, 2H, 3) linear radiance.
+    Returns (height, width, 3) float32 linear radiance, bilinear, periodic in u.
+    """
+    u, v = direction_to_uv(view_directions(width=width, height=height, fov_deg=fov_deg,
+                                           yaw_deg=yaw_deg))
+    return lookup_bilinear(env, u, v)
+
+
+# --- facts for planning -------------------------------------------------------------------------
+
+def envmap_energy(env):
+    """Integral of radiance over the sphere, sum(L * solid angle), (3,) float64 per channel."""
+    env = np.asarray(env, dtype=np.float64)
+    weights = texel_solid_angles(*env.shape[:2])
+    return np.einsum("hwc,hw->c", env, weights)
+
+
+def sun_share(env, top_fraction=0.001):
+    """Share of the map's luminous energy held by its most energetic texels.
+
+    env: (H, W, 3) linear radiance. A texel's energy is its luminance (Rec. 709 weights) times
+    its solid angle; the max(1, ceil(top_fraction * H * W)) texels of most energy are summed.
+    This is the data index's "energy in the brightest 0.1% of pixels" (hdri/index.csv).
+    Returns a float in [0, 1]: near 1 for a hard sun, about top_fraction for a uniform sky, 0
+    for an all-black map.
+    """
+    env = np.asarray(env, dtype=np.float64)
+    energy = (env @ _LUMINANCE).ravel() * texel_solid_angles(*env.shape[:2]).ravel()
+    total = energy.sum()
+    if total <= 0:
+        return 0.0
+    count = max(1, math.ceil(top_fraction * energy.size))
+    largest = np.argpartition(-energy, count - 1)[:count]
+    return float(energy[largest].sum() / total)
+
+
+def is_constant(env, rtol=1e-6):
+    """True when every channel's texels agree to within rtol of that channel's largest value
+    (an all-black map is constant). env: (H, W, 3) linear radiance."""
+    env = np.asarray(env, dtype=np.float64).reshape(-1, 3)
+    spread = env.max(axis=0) - env.min(axis=0)
+    return bool(np.all(spread <= rtol * np.abs(env).max(axis=0)))

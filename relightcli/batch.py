@@ -1,0 +1,255 @@
+"""Many images: find the inputs, plan every output path up front, run each item, collect a report.
+
+Library code: it raises and returns; the CLI prints. One failing item never stops the batch.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import tempfile
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable
+
+from relightcli.errors import (
+    EXIT_ITEMS_FAILED,
+    EXIT_OK,
+    InputError,
+    OutputError,
+    RelightError,
+    RelightWarning,
+    UsageError,
+)
+from relightcli.layers import IMAGE_EXTENSIONS, LAYERS
+
+
+@dataclass
+class Item:
+    """One input image and the files it will produce."""
+
+    input: Path
+    outputs: dict[str, Path]  # layer name -> output path
+
+
+@dataclass
+class ItemReport:
+    input: str
+    outputs: dict[str, str] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    error: str | None = None
+    exit_code: int = EXIT_OK
+    skipped: str | None = None  # why nothing was done (e.g. --skip-existing)
+    details: dict = field(default_factory=dict)  # stage plan, integrator statistics, ...
+
+    def as_dict(self) -> dict:
+        out = {
+            "input": self.input,
+            "outputs": self.outputs,
+            "seconds": self.seconds,
+            "warnings": self.warnings,
+            "error": self.error,
+        }
+        if self.skipped:
+            out["skipped"] = self.skipped
+        out.update(self.details)
+        return out
+
+
+def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Iterable[Path] = ()):
+    """Expand files and directories into a sorted list of (input file, relative stem).
+
+    The relative stem (input's path below the directory it was found in, without extension)
+    names the outputs, so a recursive scan keeps sub-folders apart. `exclude` lists files
+    (e.g. the --hdr map living in the input folder) and folders (the output) to leave out.
+    """
+    exclude = {Path(p).resolve() for p in exclude}
+    found: list[tuple[Path, Path]] = []
+    for raw in paths:
+        path = Path(raw)
+        if path.is_dir():
+            pattern = "**/*" if recursive else "*"
+            for file in sorted(path.glob(pattern)):
+                resolved = file.resolve()
+                if not file.is_file() or file.suffix.lower() not in IMAGE_EXTENSIONS:
+                    continue
+                if resolved in exclude or any(parent in exclude for parent in resolved.parents):
+                    continue
+                found.append((file, file.relative_to(path).with_suffix("")))
+        elif path.exists() or path.suffix:
+            # Files, including missing ones: each missing file fails as its own item.
+            found.append((path, Path(path.stem)))
+        else:
+            raise InputError("no such file or directory", path=path, fix="check the input path")
+    if not found:
+        raise UsageError("no input images found", fix=f"inputs must be files or folders with {', '.join(IMAGE_EXTENSIONS)} images")
+    return found
+
+
+def plan_items(found, out: str | Path, layers: Iterable[str]) -> list[Item]:
+    """Decide every output path. `out` is a file when there is exactly one input and it has an
+    image extension; otherwise a directory. Refuses collisions and outputs that are inputs."""
+    out = Path(out)
+    layers = list(layers)
+    single_file = len(found) == 1 and out.suffix.lower() in IMAGE_EXTENSIONS and not out.is_dir()
+    if len(found) > 1 and out.suffix.lower() in IMAGE_EXTENSIONS and not out.is_dir():
+        raise UsageError(f"{len(found)} inputs need an output folder, not the file {out}", fix="pass -o DIRECTORY")
+    items = []
+    for path, stem in found:
+        outputs = {}
+        for name in layers:
+            layer = LAYERS[name]
+            if single_file:
+                base = out.with_suffix("")
+                ext = out.suffix if name == "relit" else layer.extension
+                outputs[name] = base.parent / f"{base.name}{layer.suffix}{ext}"
+            else:
+                outputs[name] = out / stem.parent / f"{stem.name}{layer.suffix}{layer.extension}"
+        items.append(Item(path, outputs))
+    _refuse_collisions(items)
+    return items
+
+
+def _refuse_collisions(items: list[Item]) -> None:
+    inputs = {item.input.resolve() for item in items}
+    seen: dict[Path, Path] = {}
+    for item in items:
+        for path in item.outputs.values():
+            resolved = path.resolve()
+            if resolved in inputs:
+                raise OutputError("output would overwrite an input", path=path, fix="choose another -o")
+            if resolved in seen and seen[resolved] != item.input:
+                raise OutputError(
+                    f"two inputs ({seen[resolved]}, {item.input}) would write the same output",
+                    path=path,
+                    fix="rename one input or process them into different folders",
+                )
+            seen[resolved] = item.input
+
+
+def prepare_output_dirs(items: list[Item]) -> None:
+    """Create the output folders and prove they are writable before any work starts."""
+    folders = sorted({path.parent for item in items for path in item.outputs.values()})
+    for folder in folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.NamedTemporaryFile(dir=folder, prefix=".relight-probe-"):
+                pass
+        except OSError as exc:
+            raise OutputError(
+                f"output folder cannot be written ({exc.strerror or exc})",
+                path=folder,
+                fix="choose a writable -o",
+            ) from exc
+
+
+def existing_outputs(item: Item) -> list[Path]:
+    return [path for path in item.outputs.values() if path.exists()]
+
+
+def run_items(
+    items: list[Item],
+    worker,
+    *,
+    workers: int = 1,
+    skip_existing: bool = False,
+    overwrite: bool = False,
+    on_done: Callable[[ItemReport], None] | None = None,
+) -> list[ItemReport]:
+    """Run `worker` on every item; an item's failure is recorded, never raised.
+
+    worker: a picklable object with `setup()` (load models once per process) and
+    `__call__(item) -> ItemReport`. workers > 1 runs items on that many processes (each calls
+    `setup()` once); the reports come back in input order whatever the number of workers.
+    RelightWarnings raised while processing an item are recorded into its report.
+    """
+    if workers <= 1 or len(items) <= 1:
+        worker.setup()
+        reports = []
+        for item in items:
+            reports.append(_run_one(item, worker, skip_existing, overwrite))
+            if on_done is not None:
+                on_done(reports[-1])
+        return reports
+    return _run_pool(items, worker, workers, skip_existing, overwrite, on_done)
+
+
+def _run_pool(items, worker, workers, skip_existing, overwrite, on_done) -> list[ItemReport]:
+    # spawn, not fork: the parent may hold ONNX Runtime / OpenMP threads that fork would break.
+    context = multiprocessing.get_context("spawn")
+    reports: list[ItemReport | None] = [None] * len(items)
+    with ProcessPoolExecutor(min(workers, len(items)), mp_context=context,
+                             initializer=_init_pool_worker, initargs=(worker,)) as pool:
+        futures = {pool.submit(_pool_task, item, skip_existing, overwrite): index
+                   for index, item in enumerate(items)}
+        for future in as_completed(futures):
+            index = futures[future]
+            try:
+                reports[index] = future.result()
+            except BrokenProcessPool:
+                reports[index] = ItemReport(
+                    str(items[index].input), exit_code=EXIT_ITEMS_FAILED,
+                    error=f"{items[index].input}: the worker process died (out of memory?); "
+                          "retry with fewer --workers")
+            if on_done is not None:
+                on_done(reports[index])
+    return reports
+
+
+_POOL_WORKER = None
+
+
+def _init_pool_worker(worker) -> None:
+    global _POOL_WORKER
+    worker.setup()
+    _POOL_WORKER = worker
+
+
+def _pool_task(item: Item, skip_existing: bool, overwrite: bool) -> ItemReport:
+    return _run_one(item, _POOL_WORKER, skip_existing, overwrite)
+
+
+def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool) -> ItemReport:
+    existing = existing_outputs(item)
+    if existing and skip_existing and len(existing) == len(item.outputs):
+        report = ItemReport(str(item.input), {k: str(v) for k, v in item.outputs.items()})
+        report.skipped = "all outputs exist (--skip-existing)"
+        return report
+    start = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RelightWarning)
+        try:
+            if existing and not overwrite:
+                raise OutputError(
+                    "output exists", path=existing[0], fix="pass --overwrite or --skip-existing"
+                )
+            report = worker(item)
+        except RelightError as exc:
+            report = ItemReport(str(item.input), error=str(exc), exit_code=exc.exit_code)
+        except MemoryError:
+            report = ItemReport(str(item.input), error=f"{item.input}: out of memory", exit_code=EXIT_ITEMS_FAILED)
+    report.warnings.extend(str(w.message) for w in caught if issubclass(w.category, RelightWarning))
+    report.seconds.setdefault("total", round(time.perf_counter() - start, 4))
+    return report
+
+
+def exit_code(reports: list[ItemReport]) -> int:
+    """0 when every item is ok; the failures' common exit code when every item failed the same
+    way (e.g. 4: all unreadable); 1 otherwise (some items failed)."""
+    failed = [r for r in reports if r.error is not None]
+    if not failed:
+        return EXIT_OK
+    codes = {r.exit_code for r in failed}
+    if len(failed) == len(reports) and len(codes) == 1:
+        return codes.pop()
+    return EXIT_ITEMS_FAILED
+
+
+def summary(reports: list[ItemReport]) -> dict:
+    """The machine-readable report printed by `--json`."""
+    failed = sum(r.error is not None for r in reports)
+    return {"ok": len(reports) - failed, "failed": failed, "items": [r.as_dict() for r in reports]}

@@ -1,0 +1,292 @@
+"""The `relight` command: arguments, progress, report, exit codes.
+
+The only place that prints or exits. Heavy modules (numpy, OpenImageIO, onnxruntime, embreex)
+are imported inside the commands, so `relight --help` answers at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+from pathlib import Path
+
+from relightcli import __version__
+from relightcli.errors import EXIT_OK, EXIT_USAGE, RelightError, UsageError
+from relightcli.layers import DEFAULT_OUTPUTS, LAYERS
+
+SUBCOMMANDS = ("shade", "info")
+
+DESCRIPTION = """\
+Relight a photo of a person under an HDR environment map (ECCV 2022, "Geometry-aware
+single-image full-body human relighting"), on the CPU.
+
+  relight photo.jpg --hdr sky.exr -o out.png        one photo
+  relight photos/ --hdr sky.hdr -o out/ --recursive  a folder
+  relight shade body.obj --hdr sky.hdr -o shading.exr
+                                                     ray-traced shading of any mesh
+  relight info                                       models, providers, threads
+"""
+
+EXIT_CODES = """\
+exit codes: 0 all ok, 1 some items failed, 2 usage, 3 missing model or dependency,
+4 unreadable input."""
+
+
+def default_threads() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options every command shares (defined once, so they cannot drift apart)."""
+    parser.add_argument("--threads", type=_positive_int, default=None, metavar="N",
+                        help="threads for ONNX Runtime, OpenCV, OpenImageIO and the ray tracer "
+                             "(default: all cores available)")
+    parser.add_argument("--json", action="store_true",
+                        help="print a machine-readable report on stdout")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace existing outputs (default: refuse)")
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _outputs(text: str) -> tuple[str, ...]:
+    names = tuple(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    unknown = [n for n in names if n not in LAYERS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown output(s) {', '.join(unknown) or '(none)'}; choose from {', '.join(LAYERS)}")
+    return names
+
+
+def _background(text: str) -> str:
+    """keep | env | transparent | #RGB | #RRGGBB (validated here, interpreted by compose)."""
+    if text in ("keep", "env", "transparent") or re.fullmatch(r"#([0-9a-fA-F]{3}|[0-9a-fA-F]{6})", text):
+        return text
+    raise argparse.ArgumentTypeError(f"{text!r}: use keep, env, transparent or a colour like '#808080'")
+
+
+def relight_parser() -> argparse.ArgumentParser:
+    layers_help = "; ".join(f"{layer.name}: {layer.description}" for layer in LAYERS.values())
+    parser = argparse.ArgumentParser(
+        prog="relight", description=DESCRIPTION, epilog=EXIT_CODES,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"relight {__version__}")
+    parser.add_argument("inputs", nargs="+", metavar="INPUT",
+                        help="photos (JPEG, PNG, TIFF, WebP, EXR, HDR) and/or folders of them")
+    parser.add_argument("--hdr", required=True, metavar="ENV",
+                        help="target environment map, equirectangular .hdr/.exr (width = 2 x height)")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT",
+                        help="output file (one input) or folder")
+    parser.add_argument("--outputs", type=_outputs, default=DEFAULT_OUTPUTS, metavar="LIST",
+                        help=f"comma-separated layers to write (default: relit). {layers_help}")
+    parser.add_argument("--recursive", action="store_true", help="descend into sub-folders of INPUT folders")
+    parser.add_argument("--skip-existing", action="store_true",
+                        help="skip inputs whose outputs all exist (resume an interrupted batch)")
+    parser.add_argument("--method", choices=("raytrace", "raytrace-norefine", "sh9", "sh25"),
+                        default="raytrace",
+                        help="shading: ray tracing + learned refinement (paper, default), ray tracing only, "
+                             "or SH-9 / SH-25 irradiance from predicted normals (baselines)")
+    parser.add_argument("--mask", metavar="FILE", help="person mask (grey or alpha image); skips the mask net")
+    parser.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
+                        help="rotate the environment about +Y, counter-clockwise seen from above")
+    parser.add_argument("--exposure", type=float, default=0.0, metavar="EV",
+                        help="scale the environment by 2**EV")
+    parser.add_argument("--background", type=_background, default="keep", metavar="MODE",
+                        help="keep (original photo), env (the environment seen by a camera), "
+                             "transparent (RGBA), or a colour like '#808080'")
+    sampling = parser.add_mutually_exclusive_group()
+    sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
+    sampling.add_argument("--target-error", type=_positive_float, metavar="E",
+                          help="stop sampling at this median relative standard error (e.g. 0.02)")
+    parser.add_argument("--workers", type=_positive_int, metavar="N",
+                        help="processes for folder/many inputs (default: one per core; threads are "
+                             "split so workers x threads <= cores)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
+    parser.add_argument("--resolution", type=_positive_int, default=512, metavar="PX",
+                        help="working resolution of the square person crop (default 512, the paper's)")
+    parser.add_argument("--max-pixels", type=_positive_int, default=100_000_000, metavar="N",
+                        help="refuse images larger than N pixels before decoding (default 100 MP)")
+    add_common_arguments(parser)
+    return parser
+
+
+def info_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="relight info", description="Models found, ONNX Runtime providers, threads.")
+    add_common_arguments(parser)
+    return parser
+
+
+def shade_parser() -> argparse.ArgumentParser:
+    from relightcli.cli import shade
+
+    parser = argparse.ArgumentParser(
+        prog="relight shade", epilog=EXIT_CODES,
+        description="Ray-trace the white-Lambertian shading of a mesh under an environment map, "
+                    "pixel-aligned with an orthographic camera looking along -Z.")
+    shade.add_arguments(parser)
+    add_common_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = argv[0] if argv and argv[0] in SUBCOMMANDS else None
+    try:
+        if command == "info":
+            args = info_parser().parse_args(argv[1:])
+            return _print_report(run_info(args), args.json)
+        if command == "shade":
+            args = shade_parser().parse_args(argv[1:])
+            return run_shade(args)
+        args = relight_parser().parse_args(argv)
+        return run_relight(args)
+    except SystemExit as exc:  # argparse: --help, --version, usage errors
+        return EXIT_OK if exc.code in (0, None) else EXIT_USAGE
+    except RelightError as exc:
+        print(f"relight: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("relight: interrupted", file=sys.stderr)
+        return 130
+
+
+def run_relight(args) -> int:
+    from relightcli import batch
+    from relightcli.pipeline import RelightOptions, RelightWorker
+
+    if args.skip_existing and args.overwrite:
+        raise UsageError("--skip-existing and --overwrite contradict each other", fix="pass one of them")
+    threads = args.threads or default_threads()
+    exclude = [Path(args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
+    found = batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude)
+    items = batch.plan_items(found, args.output, args.outputs)
+    batch.prepare_output_dirs(items)
+    env, env_warnings = _load_environment(args)
+    # One process per core by default; threads are split so workers x threads <= cores.
+    workers = min(args.workers or threads, len(items))
+    options = RelightOptions(
+        outputs=args.outputs, method=args.method,
+        mask_path=None if args.mask is None else Path(args.mask),
+        rotate_deg=args.rotate, exposure_ev=args.exposure, spp=args.spp,
+        target_error=args.target_error, seed=args.seed, threads=max(1, threads // workers),
+        background=args.background, max_pixels=args.max_pixels, resolution=args.resolution)
+
+    progress = _Progress(len(items), enabled=sys.stderr.isatty() and not args.json)
+    reports = batch.run_items(
+        items, RelightWorker(env, options), workers=workers,
+        skip_existing=args.skip_existing, overwrite=args.overwrite, on_done=progress.step)
+    progress.close()
+    for report in reports:
+        report.warnings[:0] = env_warnings
+    summary = batch.summary(reports)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        _print_human_summary(summary)
+    return batch.exit_code(reports)
+
+
+def _load_environment(args):
+    """The target environment, loaded once for the whole batch, and its warnings as text."""
+    import warnings
+
+    from relightcli.errors import RelightWarning
+    from relightcli.io.envmap import load_envmap
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RelightWarning)
+        env = load_envmap(args.hdr, rotate_deg=args.rotate, exposure_ev=args.exposure)
+    return env, [str(w.message) for w in caught if issubclass(w.category, RelightWarning)]
+
+
+def run_shade(args) -> int:
+    from relightcli.cli import shade
+
+    from relightcli.io.images import set_io_threads
+
+    threads = args.threads or default_threads()
+    set_io_threads(threads)
+    return _print_report(shade.run(args, threads), args.json)
+
+
+def run_info(args) -> dict:
+    import onnxruntime
+
+    from relightcli.nets.manifest import list_models, models_dir
+
+    models = [
+        {"name": m.name, "file": str(m.path), "present": m.present, "sha256_ok": m.sha256_ok}
+        for m in list_models(verify=True)
+    ]
+    return {
+        "version": __version__,
+        "python": sys.version.split()[0],
+        "models_dir": str(models_dir()),
+        "models": models,
+        "onnxruntime": onnxruntime.__version__,
+        "providers": onnxruntime.get_available_providers(),
+        "threads": args.threads or default_threads(),
+    }
+
+
+def _print_report(report: dict, as_json: bool) -> int:
+    if as_json:
+        print(json.dumps(report, indent=2))
+    else:
+        for key, value in report.items():
+            print(f"{key}: {value}")
+    return EXIT_OK
+
+
+def _print_human_summary(summary: dict) -> None:
+    for item in summary["items"]:
+        if item["error"]:
+            print(f"FAILED {item['input']}: {item['error']}", file=sys.stderr)
+        elif item.get("skipped"):
+            print(f"skipped {item['input']}: {item['skipped']}")
+        else:
+            print(f"ok {item['input']} -> {', '.join(item['outputs'].values())}")
+        for warning in item["warnings"]:
+            print(f"  warning: {warning}", file=sys.stderr)
+    failed = [item["input"] for item in summary["items"] if item["error"]]
+    line = f"{summary['ok']} ok, {summary['failed']} failed"
+    if failed:
+        line += ": " + ", ".join(failed)
+    print(line, file=sys.stderr if failed else sys.stdout)
+
+
+class _Progress:
+    """A one-line progress bar on stderr, only when stderr is a terminal."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.total, self.done, self.enabled = total, 0, enabled
+
+    def step(self, report) -> None:
+        self.done += 1
+        if self.enabled:
+            width = 30
+            filled = width * self.done // self.total
+            sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {report.input[-40:]}")
+            sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")

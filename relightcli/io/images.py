@@ -1,0 +1,393 @@
+"""Image files in and out (OpenImageIO), and the project's one sRGB transfer pair.
+
+Convention (../shared/DESIGN.md): every image in memory is float32, linear light, (H, W, 3)
+(or (H, W) for masks), with alpha kept apart as a straight (unassociated) (H, W) mask in
+[0, 1]. Integer files (JPEG, PNG, TIFF, WebP, 8 or 16 bit) hold sRGB-encoded values and are
+decoded on read, encoded on write; EXR and HDR hold linear values. EXIF orientation is
+applied on read, so row 0 is the top of the picture as a viewer sees it.
+
+Every failure becomes an `InputError` (reading) or an `OutputError` (writing) whose message
+names the file and says what to do.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from relightcli.errors import InputError, OutputError, UsageError
+
+DEFAULT_MAX_PIXELS = 100_000_000
+
+_FIX_UNREADABLE = "check that the file is a complete JPEG, PNG, TIFF, WebP, EXR or HDR image"
+_FIX_TOO_LARGE = "downscale the image, or raise the limit with --max-pixels"
+_FIX_UNWRITABLE = "check free disk space and permissions, or choose another -o"
+_OUTPUT_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr", ".hdr": "hdr"}
+
+
+# --- sRGB transfer (IEC 61966-2-1) ------------------------------------------------------
+
+def srgb_to_linear(x):
+    """Decode sRGB-encoded values to linear light.
+
+    x: array of any shape, encoded values (nominally [0, 1]). Returns float32, same shape.
+    Piecewise curve: x / 12.92 below 0.04045, ((x + 0.055) / 1.055) ** 2.4 above.
+    """
+    x = np.asarray(x, dtype=np.float32)
+    low = x / np.float32(12.92)
+    # clip the base at 0 so the power of the (unused) branch never sees a negative number
+    high = (np.maximum(x, 0.04045) + np.float32(0.055)) / np.float32(1.055)
+    return np.where(x <= 0.04045, low, high ** np.float32(2.4)).astype(np.float32)
+
+
+def linear_to_srgb(x):
+    """Encode linear light to sRGB; negatives are clipped to 0 (values above 1 pass through).
+
+    x: array of any shape, linear values. Returns float32, same shape.
+    Piecewise curve: 12.92 x below 0.0031308, 1.055 x ** (1 / 2.4) - 0.055 above.
+    """
+    x = np.maximum(np.asarray(x, dtype=np.float32), np.float32(0.0))
+    low = x * np.float32(12.92)
+    high = np.float32(1.055) * np.maximum(x, 0.0031308) ** np.float32(1.0 / 2.4) - np.float32(0.055)
+    return np.where(x <= 0.0031308, low, high).astype(np.float32)
+
+
+# --- reading ------------------------------------------------------------------------------
+
+@dataclass
+class Image:
+    """A decoded image.
+
+    rgb: (H, W, 3) float32, linear light. Integer files give values in [0, 1]; float files
+        (EXR, HDR, float TIFF) keep their values as stored, NaN and negatives included: the
+        caller decides how to repair them.
+    alpha: (H, W) float32 in [0, 1], straight (unassociated) alpha, or None.
+    path: the file it came from.
+    encoded: True when the file held sRGB-encoded integer data that was decoded.
+    bits: bits per channel in the file (8, 16, or 32 / 16 for float / half).
+    """
+
+    rgb: np.ndarray
+    alpha: np.ndarray | None
+    path: str
+    encoded: bool
+    bits: int
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+
+def set_io_threads(n: int) -> None:
+    """Set OpenImageIO's global worker thread count (0 = one per core)."""
+    if int(n) != n or n < 0:
+        raise UsageError(f"I/O thread count must be a whole number >= 0, got {n}",
+                         fix="pass 0 for one thread per core")
+    oiio.attribute("threads", int(n))
+
+
+def _open_input(path: str | Path) -> oiio.ImageInput:
+    """Open a file for reading (header only), or raise InputError naming what went wrong."""
+    path = str(path)
+    if not os.path.exists(path):
+        raise InputError("file not found", path=path, fix="check the path")
+    if os.path.isdir(path):
+        raise InputError("is a directory, not an image file", path=path, fix="pass an image file")
+    if os.path.getsize(path) == 0:
+        raise InputError("file is empty (0 bytes)", path=path, fix=_FIX_UNREADABLE)
+    oiio.geterror()  # drop any stale global error so the message below is about this file
+    config = oiio.ImageSpec()
+    # keep PNG/TIFF alpha straight instead of letting OIIO premultiply it
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    image_input = oiio.ImageInput.open(path, config)
+    if image_input is None:
+        reason = oiio.geterror() or "unknown error"
+        raise InputError(f"not a readable image: {reason}", path=path, fix=_FIX_UNREADABLE)
+    return image_input
+
+
+def _oriented_size(spec: oiio.ImageSpec) -> tuple[int, int]:
+    """(width, height) of the display window as seen after EXIF orientation."""
+    width, height = spec.full_width or spec.width, spec.full_height or spec.height
+    if spec.get_int_attribute("Orientation", 1) in (5, 6, 7, 8):
+        return height, width
+    return width, height
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) in pixels as `read_image` would return it, from the header only."""
+    image_input = _open_input(path)
+    try:
+        return _oriented_size(image_input.spec())
+    finally:
+        image_input.close()
+
+
+def _check_pixel_count(spec: oiio.ImageSpec, path: str, max_pixels: int) -> None:
+    width, height = _oriented_size(spec)
+    if width * height > max_pixels:
+        raise InputError(
+            f"image is {width}x{height} = {width * height} pixels, more than the limit of "
+            f"{max_pixels}", path=path, fix=_FIX_TOO_LARGE)
+
+
+def _read_pixels(image_input: oiio.ImageInput, path: str) -> np.ndarray:
+    """All channels of subimage 0 as (H, W, C) float32 (integers scaled to [0, 1])."""
+    pixels = image_input.read_image(oiio.FLOAT)
+    # JPEG reports a truncated stream only through has_error, with pixels returned
+    if pixels is None or image_input.has_error:
+        reason = image_input.geterror() or oiio.geterror() or "read failed"
+        raise InputError(f"cannot decode pixels (truncated or corrupt?): {reason}",
+                         path=path, fix=_FIX_UNREADABLE)
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    return pixels
+
+
+def _to_display_window(pixels: np.ndarray, spec: oiio.ImageSpec) -> np.ndarray:
+    """Place an EXR data window inside its display window (zeros outside)."""
+    full_w, full_h = spec.full_width, spec.full_height
+    if (spec.x, spec.y, spec.width, spec.height) == (spec.full_x, spec.full_y, full_w, full_h):
+        return pixels
+    canvas = np.zeros((full_h, full_w, pixels.shape[2]), dtype=np.float32)
+    x0, y0 = spec.x - spec.full_x, spec.y - spec.full_y
+    cx0, cy0 = max(x0, 0), max(y0, 0)
+    cx1, cy1 = min(x0 + spec.width, full_w), min(y0 + spec.height, full_h)
+    if cx1 > cx0 and cy1 > cy0:
+        canvas[cy0:cy1, cx0:cx1] = pixels[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+    return canvas
+
+
+def _split_channels(pixels: np.ndarray, spec: oiio.ImageSpec, path: str):
+    """(rgb (H, W, 3), alpha (H, W) or None) from gray, gray+alpha, RGB, RGBA or named
+    R, G, B(, A) channels among more."""
+    names = [name.upper() for name in spec.channelnames]
+    count = pixels.shape[2]
+    if count == 1:
+        return np.repeat(pixels, 3, axis=2), None
+    if count == 2:
+        return np.repeat(pixels[:, :, :1], 3, axis=2), pixels[:, :, 1]
+    named_rgb = all(c in names for c in "RGB")
+    if count in (3, 4) or named_rgb:
+        rgb_index = [names.index(c) for c in "RGB"] if named_rgb else [0, 1, 2]
+        alpha_index = spec.alpha_channel if spec.alpha_channel >= 0 else (3 if count == 4 else None)
+        alpha = None if alpha_index is None else pixels[:, :, alpha_index]
+        return pixels[:, :, rgb_index], alpha
+    raise InputError(f"unsupported channel layout: {count} channels {spec.channelnames}",
+                     path=path, fix="save the image as gray, RGB or RGBA")
+
+
+def _apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
+    """Turn stored pixels (H, W, ...) into display orientation per EXIF tag 0x0112 (1..8)."""
+    if orientation == 2:
+        return array[:, ::-1]
+    if orientation == 3:
+        return array[::-1, ::-1]
+    if orientation == 4:
+        return array[::-1]
+    if orientation == 5:
+        return np.swapaxes(array, 0, 1)
+    if orientation == 6:
+        return np.rot90(array, k=-1)  # stored rotated 90 ccw: turn clockwise
+    if orientation == 7:
+        return np.swapaxes(array, 0, 1)[::-1, ::-1]
+    if orientation == 8:
+        return np.rot90(array, k=1)
+    return array
+
+
+def _unpremultiply(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Straight colour from associated (premultiplied) colour; 0 where alpha is 0."""
+    safe = np.where(alpha > 0, alpha, 1.0)[:, :, None]
+    return np.where(alpha[:, :, None] > 0, rgb / safe, 0.0).astype(np.float32)
+
+
+def _bits(spec: oiio.ImageSpec) -> int:
+    return int(spec.format.size()) * 8
+
+
+def _is_integer(spec: oiio.ImageSpec) -> bool:
+    return spec.format.basetype not in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+
+
+def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> Image:
+    """Read an image file into linear float32 RGB plus an optional straight alpha.
+
+    Formats: JPEG (RGB, gray, CMYK), PNG (8/16 bit; gray, gray+alpha, RGB, RGBA), TIFF,
+    WebP, EXR, HDR. The pixel count is checked against `max_pixels` from the header, before
+    any pixel is decoded. Raises InputError for anything that cannot be read.
+    """
+    path = str(path)
+    image_input = _open_input(path)
+    try:
+        spec = image_input.spec()
+        _check_pixel_count(spec, path, max_pixels)
+        pixels = _to_display_window(_read_pixels(image_input, path), spec)
+    finally:
+        image_input.close()
+    rgb, alpha = _split_channels(pixels, spec, path)
+    encoded = _is_integer(spec)
+    if encoded:
+        rgb = srgb_to_linear(rgb)
+    if alpha is not None:
+        alpha = np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0).astype(np.float32)
+        # OIIO flags data it hands back straight; anything else (EXR) is premultiplied
+        if spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0:
+            rgb = _unpremultiply(rgb, alpha)
+    orientation = spec.get_int_attribute("Orientation", 1)
+    rgb = np.ascontiguousarray(_apply_orientation(rgb, orientation), dtype=np.float32)
+    if alpha is not None:
+        alpha = np.ascontiguousarray(_apply_orientation(alpha, orientation), dtype=np.float32)
+    return Image(rgb=rgb, alpha=alpha, path=path, encoded=encoded, bits=_bits(spec))
+
+
+# --- writing ------------------------------------------------------------------------------
+
+def _output_format(path: str) -> str:
+    extension = os.path.splitext(path)[1].lower()
+    if extension not in _OUTPUT_FORMATS:
+        raise OutputError(f"unsupported output format '{extension}'", path=path,
+                          fix="use a .png, .jpg, .exr or .hdr file name")
+    return _OUTPUT_FORMATS[extension]
+
+
+def _check_arrays(rgb, alpha, path: str):
+    """rgb as (H, W, 3) or (H, W) float32, alpha as (H, W) float32 or None."""
+    rgb = np.asarray(rgb, dtype=np.float32)
+    if rgb.ndim == 3 and rgb.shape[2] == 1:
+        rgb = rgb[:, :, 0]
+    if not (rgb.ndim == 2 or (rgb.ndim == 3 and rgb.shape[2] == 3)) or 0 in rgb.shape[:2]:
+        raise ValueError(f"{path}: image to write must be (H, W, 3) or (H, W), got {rgb.shape}")
+    if alpha is not None:
+        alpha = np.asarray(alpha, dtype=np.float32)
+        if alpha.shape != rgb.shape[:2]:
+            raise ValueError(f"{path}: alpha must be {rgb.shape[:2]}, got {alpha.shape}")
+        alpha = np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0)
+    return rgb, alpha
+
+
+def _quantize(encoded: np.ndarray, bits: int) -> np.ndarray:
+    """Encoded values in [0, 1] (NaN -> 0) to uint8 / uint16, rounding to nearest."""
+    top = (1 << bits) - 1
+    values = np.clip(np.nan_to_num(encoded, nan=0.0), 0.0, 1.0) * top + 0.5
+    return np.floor(values).astype(np.uint8 if bits == 8 else np.uint16)
+
+
+def _channels(rgb: np.ndarray, alpha: np.ndarray | None) -> np.ndarray:
+    """(H, W, C) stack of colour (1 or 3 channels) and alpha (0 or 1 channel)."""
+    colour = rgb[:, :, None] if rgb.ndim == 2 else rgb
+    return colour if alpha is None else np.concatenate([colour, alpha[:, :, None]], axis=2)
+
+
+def _encode_pixels(fmt: str, rgb, alpha, bits, quality: int, half: bool, srgb: bool):
+    """(pixels (H, W, C), ImageSpec) ready for OIIO, per the output format's conventions."""
+    if fmt in ("png", "jpeg"):
+        bits = 8 if bits is None or fmt == "jpeg" else bits
+        keep_alpha = alpha if fmt == "png" else None  # JPEG has no alpha
+        values = linear_to_srgb(rgb) if srgb else rgb
+        pixels = _quantize(_channels(values, keep_alpha), bits)
+        spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], pixels.shape[2],
+                              oiio.UINT8 if bits == 8 else oiio.UINT16)
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        if fmt == "jpeg":
+            spec.attribute("Compression", f"jpeg:{int(quality)}")
+        return pixels, spec
+    if fmt == "hdr":
+        colour = np.repeat(rgb[:, :, None], 3, axis=2) if rgb.ndim == 2 else rgb
+        spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], 3, oiio.FLOAT)
+        return np.ascontiguousarray(colour), spec
+    # EXR stores associated (premultiplied) alpha by convention
+    colour = rgb if alpha is None else rgb * (alpha if rgb.ndim == 2 else alpha[:, :, None])
+    pixels = _channels(colour, alpha)
+    spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], pixels.shape[2],
+                          oiio.HALF if half else oiio.FLOAT)
+    if pixels.shape[2] == 1:
+        spec.channelnames = ("Y",)
+    elif pixels.shape[2] == 2:
+        spec.channelnames = ("Y", "A")
+    return np.ascontiguousarray(pixels, dtype=np.float32), spec
+
+
+def _write_pixels(path: str, pixels: np.ndarray, spec: oiio.ImageSpec) -> str | None:
+    """Write pixels to `path` with OIIO; returns None on success, else OIIO's error text."""
+    oiio.geterror()
+    image_output = oiio.ImageOutput.create(path)
+    if image_output is None:
+        return oiio.geterror() or "no writer for this format"
+    try:
+        if not image_output.open(path, spec):
+            return image_output.geterror() or oiio.geterror() or "cannot open for writing"
+        if not image_output.write_image(pixels):
+            return image_output.geterror() or "write failed"
+    finally:
+        image_output.close()
+    return image_output.geterror() or None
+
+
+def _temporary_path(path: str) -> str:
+    """Create an empty, unique temporary file next to `path`, with the same extension."""
+    directory, name = os.path.split(os.path.abspath(path))
+    extension = os.path.splitext(name)[1]
+    while True:
+        temporary = os.path.join(directory, f".{name}.tmp-{secrets.token_hex(4)}{extension}")
+        try:
+            # 0o666 under the umask: the final file gets the permissions a plain open() gives
+            os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return temporary
+        except FileExistsError:
+            continue
+
+
+def write_image(path: str | Path, rgb, alpha=None, *, bits: int | None = None,
+                quality: int = 95, half: bool = True, overwrite: bool = True,
+                srgb: bool = True) -> None:
+    """Write linear float RGB (or a gray map) to an image file, atomically.
+
+    rgb: (H, W, 3) or (H, W) float, linear light. alpha: (H, W) straight alpha in [0, 1] or
+    None. The format comes from the extension: .png (8 or 16 `bits`, default 8, sRGB-encoded,
+    alpha kept), .jpg/.jpeg (8-bit sRGB at `quality`, alpha dropped), .exr (linear, `half`
+    or float, premultiplied alpha as the format expects), .hdr (linear RGBE, alpha dropped).
+    `srgb=False` stores data maps (masks, AO) in PNG/JPEG as they are, without the transfer
+    curve (values clipped to [0, 1]); `read_image` will still decode them as sRGB, so a reader
+    of such a file undoes that with `linear_to_srgb`.
+    The file appears complete or not at all: pixels go to a temporary file in the same
+    directory, then replace `path`. Raises OutputError when the file cannot be written.
+    """
+    path = str(path)
+    fmt = _output_format(path)
+    if fmt == "png" and bits not in (None, 8, 16):
+        raise UsageError(f"PNG bit depth must be 8 or 16, got {bits}", path=path,
+                         fix="write 8 or 16 bits, or use .exr for float")
+    rgb, alpha = _check_arrays(rgb, alpha, path)
+    if not overwrite and os.path.exists(path):
+        raise OutputError("file exists", path=path,
+                          fix="choose another output or allow overwriting")
+    if os.path.isdir(path):
+        raise OutputError("is a directory", path=path, fix="give a file name, not a directory")
+    pixels, spec = _encode_pixels(fmt, rgb, alpha, bits, quality, half, srgb)
+    try:
+        temporary = _temporary_path(path)
+    except OSError as error:
+        raise OutputError(f"directory not writable: {error.strerror}", path=path,
+                          fix="choose another output location with -o") from error
+    try:
+        failure = _write_pixels(temporary, pixels, spec)
+        if failure is not None:
+            raise OutputError(f"cannot write image: {failure}", path=path, fix=_FIX_UNWRITABLE)
+        os.replace(temporary, path)
+    except OSError as error:
+        raise OutputError(f"cannot write image: {error}", path=path,
+                          fix=_FIX_UNWRITABLE) from error
+    finally:
+        if os.path.exists(temporary):
+            os.remove(temporary)

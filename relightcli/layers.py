@@ -1,0 +1,35 @@
+"""The output layers a run can write: one table, read by the CLI (choices, help) and the batch
+planner (file names). Light-weight on purpose: `relight --help` imports it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Layer:
+    name: str
+    suffix: str  # appended to the input's stem; "" for the relit image itself
+    extension: str  # default extension; the relit image takes -o's extension when -o is a file
+    description: str
+
+
+LAYERS = {
+    layer.name: layer
+    for layer in (
+        Layer("relit", "", ".png", "the person relit under --hdr (sRGB PNG; .exr/.hdr keep HDR)"),
+        Layer("albedo", "_albedo", ".png", "de-lit reflectance, 16-bit sRGB PNG"),
+        Layer("normal", "_normal", ".png", "camera-space normals stored as (n+1)/2, 16-bit PNG"),
+        Layer("ao", "_ao", ".png", "ambient occlusion in [0,1], 16-bit grey PNG"),
+        Layer("shading", "_shading", ".exr", "HDR shading under --hdr, linear EXR"),
+        Layer("mask", "_mask", ".png", "person mask in [0,1], 8-bit grey PNG"),
+        Layer("mesh", "_mesh", ".ply", "reconstructed, smoothed full-body mesh (PLY)"),
+        Layer("light", "_light", ".hdr", "estimated input lighting, 32x16 lat-long HDR"),
+        Layer("preview", "_preview", ".png", "one sheet: input, albedo, normal, shading, relit, env"),
+    )
+}
+
+DEFAULT_OUTPUTS = ("relit",)
+
+# Inputs a directory scan picks up (lower-case extensions).
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".exr", ".hdr")

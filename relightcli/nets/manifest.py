@@ -1,0 +1,159 @@
+"""The model manifest, `models/manifest.json`: the one source of truth for which ONNX files
+ship, their sha256 and their I/O contract.
+
+Format (version 1)::
+
+    {"version": 1,
+     "models": {name: {"file": "geometry.onnx", "sha256": "<64 hex>",
+                       "inputs":  [{"name": "image", "shape": ["N", 3, "H", "W"], "dtype": "float32"}],
+                       "outputs": [...],
+                       "multiple": 32, "colour_space": "...", "normalisation": "...",
+                       "config": {...}, "training_data": {...}, "metrics": {...}}}}
+
+`file` is relative to the models directory. Shapes use "N" for batch and "H"/"W" for dynamic
+spatial sizes; integers are fixed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import relightcli
+from relightcli.errors import MissingDependencyError
+
+MANIFEST_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+MODELS_DIR_ENV = "RELIGHT_MODELS_DIR"
+REQUIRED_KEYS = ("file", "sha256", "inputs", "outputs", "multiple")
+EXPORT_FIX = "re-export the models (python -m export.onnx_export) or reinstall them into the models directory"
+
+
+@dataclass(frozen=True)
+class TensorContract:
+    name: str
+    shape: tuple  # ints for fixed dims, strings ("N", "H", "W") for dynamic ones
+    dtype: str = "float32"
+
+    @property
+    def rank(self) -> int:
+        return len(self.shape)
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """One model of the manifest; `path` is absolute."""
+
+    name: str
+    path: Path
+    sha256: str
+    inputs: tuple[TensorContract, ...]
+    outputs: tuple[TensorContract, ...]
+    multiple: int
+    colour_space: str = ""
+    normalisation: str = ""
+    config: dict = field(default_factory=dict)
+    training_data: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ModelStatus:
+    """What `relight info` shows per manifest model."""
+
+    name: str
+    path: Path
+    present: bool
+    sha256_ok: bool | None  # None when not checked (or the file is absent)
+
+
+def models_dir() -> Path:
+    """$RELIGHT_MODELS_DIR when set, else `models/` next to the relightcli package."""
+    override = os.environ.get(MODELS_DIR_ENV)
+    if override:
+        return Path(override).expanduser()
+    return Path(relightcli.__file__).resolve().parents[1] / "models"
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file's bytes, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def load_manifest(directory: str | Path | None = None) -> dict[str, ModelEntry]:
+    """Parse `<directory>/manifest.json` into entries by model name.
+
+    Raises MissingDependencyError naming the manifest when it is missing, not JSON, of another
+    version, or an entry lacks a required key.
+    """
+    directory = Path(directory) if directory is not None else models_dir()
+    path = directory / MANIFEST_NAME
+    if not path.is_file():
+        raise MissingDependencyError("model manifest not found", path=path,
+                                     fix=f"set {MODELS_DIR_ENV} to the models directory or {EXPORT_FIX}")
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise MissingDependencyError(f"model manifest unreadable: {exc}", path=path, fix=EXPORT_FIX) from exc
+    if not isinstance(raw, dict) or raw.get("version") != MANIFEST_VERSION or not isinstance(raw.get("models"), dict):
+        raise MissingDependencyError(f"model manifest is not version {MANIFEST_VERSION} with a 'models' table",
+                                     path=path, fix=EXPORT_FIX)
+    return {name: _parse_entry(name, spec, directory, path) for name, spec in raw["models"].items()}
+
+
+def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) -> ModelEntry:
+    missing = [k for k in REQUIRED_KEYS if not isinstance(spec, dict) or k not in spec]
+    if missing:
+        raise MissingDependencyError(f"model {name!r} lacks {', '.join(missing)}", path=manifest_path, fix=EXPORT_FIX)
+    try:
+        inputs = tuple(_parse_tensor(t) for t in spec["inputs"])
+        outputs = tuple(_parse_tensor(t) for t in spec["outputs"])
+        multiple = int(spec["multiple"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise MissingDependencyError(f"model {name!r} has a malformed I/O contract: {exc}",
+                                     path=manifest_path, fix=EXPORT_FIX) from exc
+    return ModelEntry(
+        name=name,
+        path=directory / spec["file"],
+        sha256=str(spec["sha256"]).lower(),
+        inputs=inputs,
+        outputs=outputs,
+        multiple=multiple,
+        colour_space=spec.get("colour_space", ""),
+        normalisation=spec.get("normalisation", ""),
+        config=spec.get("config", {}),
+        training_data=spec.get("training_data", {}),
+        metrics=spec.get("metrics", {}),
+    )
+
+
+def _parse_tensor(spec: dict) -> TensorContract:
+    return TensorContract(name=spec["name"], shape=tuple(spec["shape"]), dtype=spec.get("dtype", "float32"))
+
+
+def model_entry(name: str, directory: str | Path | None = None) -> ModelEntry:
+    """The manifest entry of model `name`; MissingDependencyError when the manifest lacks it."""
+    directory = Path(directory) if directory is not None else models_dir()
+    entries = load_manifest(directory)
+    if name not in entries:
+        raise MissingDependencyError(f"model {name!r} is not in the manifest (has: {', '.join(sorted(entries)) or 'none'})",
+                                     path=directory / MANIFEST_NAME, fix=EXPORT_FIX)
+    return entries[name]
+
+
+def list_models(directory: str | Path | None = None, verify: bool = False) -> list[ModelStatus]:
+    """Every manifest model with whether its file is present and, with `verify`, whether its
+    sha256 matches (hashing reads every file: about 1 s per GB)."""
+    statuses = []
+    for name, entry in sorted(load_manifest(directory).items()):
+        present = entry.path.is_file()
+        sha_ok = (sha256_file(entry.path) == entry.sha256) if (present and verify) else None
+        statuses.append(ModelStatus(name, entry.path, present, sha_ok))
+    return statuses

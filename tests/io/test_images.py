@@ -1,0 +1,507 @@
+"""Image I/O: sRGB transfer, round trips per format, orientation, and bad inputs/outputs."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from relightcli.errors import InputError, OutputError, UsageError
+from relightcli.io import images
+from relightcli.io.images import (
+    image_size,
+    linear_to_srgb,
+    read_image,
+    srgb_to_linear,
+    write_image,
+)
+
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+PHOTOS = ["coco_000000000785_skier.jpg", "coco_000000000785_skier_mask.png",
+          "nasa_apollo11_aldrin_fullbody.png", "pexels_woman_with_dog.jpg"]
+HDRIS = ["forest_slope_1k.hdr", "dikhololo_night_1k.hdr"]
+
+
+def shared_file(*parts):
+    path = DATA.joinpath(*parts)
+    if not path.is_file():
+        pytest.skip(f"shared data file missing: {path}")
+    return path
+
+
+def srgb_decode_reference(x):
+    """IEC 61966-2-1 decoding in float64, written out independently of the module."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def listing(directory):
+    return sorted(os.listdir(directory))
+
+
+# --- sRGB transfer ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("encoded, linear", [(0.0, 0.0), (1.0, 1.0), (0.5, 0.21404114),
+                                             (0.04045, 0.0031308), (128 / 255, 0.21586050)])
+def test_srgb_to_linear_known_values(encoded, linear):
+    assert srgb_to_linear(np.float32(encoded)) == pytest.approx(linear, abs=2e-7)
+
+
+def test_srgb_to_linear_matches_float64_reference_everywhere():
+    x = np.linspace(0.0, 1.0, 10001, dtype=np.float32)
+    np.testing.assert_allclose(srgb_to_linear(x), srgb_decode_reference(x), rtol=2e-6, atol=1e-8)
+
+
+def test_srgb_pair_round_trips():
+    linear = np.linspace(0.0, 1.0, 10001, dtype=np.float32)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(linear)), linear,
+                               rtol=1e-5, atol=1e-7)
+
+
+def test_linear_to_srgb_clips_negatives_and_keeps_dtype():
+    out = linear_to_srgb(np.array([-1.0, -1e-6, 0.0], dtype=np.float64))
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, 0.0)
+
+
+# --- round trips --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, options, tolerance", [
+    ("eight.png", {}, 0.5 / 255),                # half an 8-bit step in encoded values
+    ("sixteen.png", {"bits": 16}, 0.5 / 65535),
+    ("half.exr", {"half": True}, 2.0**-11),      # relative: 10-bit mantissa, rounded
+    ("float.exr", {"half": False}, 0.0),
+])
+def test_lossless_round_trip(tmp_path, name, options, tolerance, smooth_rgb):
+    rgb = smooth_rgb()
+    write_image(tmp_path / name, rgb, **options)
+    image = read_image(tmp_path / name)
+    assert image.rgb.shape == rgb.shape and image.rgb.dtype == np.float32
+    if image.encoded:
+        error = np.abs(linear_to_srgb(image.rgb) - linear_to_srgb(rgb)).max()
+        assert error <= tolerance + 1e-6
+    else:
+        np.testing.assert_allclose(image.rgb, rgb, rtol=tolerance, atol=0.0)
+    assert listing(tmp_path) == [name]  # no temporary file left behind
+
+
+def test_jpeg_round_trip_is_close(tmp_path, smooth_rgb):
+    rgb = smooth_rgb()
+    write_image(tmp_path / "photo.jpg", rgb, quality=95)
+    encoded_error = np.abs(linear_to_srgb(read_image(tmp_path / "photo.jpg").rgb)
+                           - linear_to_srgb(rgb))
+    # 4:2:0 chroma subsampling costs a few steps at colour edges; the mean stays ~1 step
+    assert encoded_error.mean() <= 1.5 / 255
+    assert encoded_error.max() <= 16 / 255
+
+
+def test_jpeg_quality_is_applied(tmp_path, smooth_rgb):
+    rgb = smooth_rgb(96, 128)
+    write_image(tmp_path / "low.jpg", rgb, quality=20)
+    write_image(tmp_path / "high.jpg", rgb, quality=98)
+    assert (tmp_path / "low.jpg").stat().st_size < 0.7 * (tmp_path / "high.jpg").stat().st_size
+
+
+def test_hdr_round_trip_within_shared_exponent_step(tmp_path, smooth_rgb):
+    rgb = smooth_rgb() * np.float32(40.0)  # radiance above 1 is the point of .hdr
+    write_image(tmp_path / "radiance.hdr", rgb)
+    image = read_image(tmp_path / "radiance.hdr")
+    # RGBE: 8-bit mantissas share the exponent of the largest channel, so each channel is
+    # within one step, max(r, g, b) / 128, of the original
+    step = rgb.max(axis=-1, keepdims=True) / 128.0
+    assert (np.abs(image.rgb - rgb) <= step).all()
+    assert listing(tmp_path) == ["radiance.hdr"]
+
+
+@pytest.mark.parametrize("name, encoded, bits", [("a.png", True, 8), ("b.jpg", True, 8),
+                                                 ("c.exr", False, 16), ("d.hdr", False, 32)])
+def test_read_reports_encoding_and_bits(tmp_path, name, encoded, bits, smooth_rgb):
+    write_image(tmp_path / name, smooth_rgb(8, 8))
+    image = read_image(tmp_path / name)
+    assert (image.encoded, image.bits, image.path) == (encoded, bits, str(tmp_path / name))
+
+
+@pytest.mark.parametrize("bits, step", [(8, 1.0 / 255), (16, 1.0 / 65535)])
+def test_png_rgba_round_trip_keeps_straight_alpha(tmp_path, bits, step, smooth_rgb):
+    rgb = smooth_rgb(16, 20)
+    alpha = np.tile(np.linspace(0.05, 1.0, 20, dtype=np.float32), (16, 1))
+    write_image(tmp_path / "straight.png", rgb, alpha, bits=bits)
+    image = read_image(tmp_path / "straight.png")
+    np.testing.assert_allclose(image.alpha, alpha, atol=step / 2 + 1e-6)
+    # straight alpha: colour keeps full precision where alpha is partial
+    encoded_error = np.abs(linear_to_srgb(image.rgb) - linear_to_srgb(rgb)).max()
+    assert encoded_error <= step / 2 + 1e-6
+
+
+def test_exr_rgba_round_trip_unpremultiplies(tmp_path, smooth_rgb):
+    rgb = smooth_rgb(16, 20)
+    alpha = np.tile(np.linspace(0.05, 1.0, 20, dtype=np.float32), (16, 1))
+    write_image(tmp_path / "straight.exr", rgb, alpha, half=False)
+    stored = oiio.ImageInput.open(str(tmp_path / "straight.exr")).read_image(oiio.FLOAT)
+    np.testing.assert_allclose(stored[..., :3], rgb * alpha[:, :, None], rtol=1e-6)
+    image = read_image(tmp_path / "straight.exr")
+    np.testing.assert_allclose(image.alpha, alpha, rtol=1e-7)
+    np.testing.assert_allclose(image.rgb, rgb, rtol=1e-6)
+
+
+@pytest.mark.parametrize("name, tolerance", [("mask_alpha.png", 1.0 / 255),
+                                             ("mask_alpha.exr", 2e-3)])
+def test_gray_with_alpha_round_trips(tmp_path, name, tolerance):
+    gray = np.tile(np.linspace(0.1, 0.9, 12, dtype=np.float32), (5, 1))
+    alpha = gray[:, ::-1].copy()
+    write_image(tmp_path / name, gray, alpha)
+    image = read_image(tmp_path / name)
+    np.testing.assert_allclose(image.alpha, alpha, atol=tolerance)
+    np.testing.assert_allclose(linear_to_srgb(image.rgb), linear_to_srgb(gray)[:, :, None]
+                               .repeat(3, axis=2), atol=tolerance / alpha.min())
+
+
+def test_png_bit_depth_other_than_8_or_16_is_refused(tmp_path, smooth_rgb):
+    with pytest.raises(UsageError, match="deep.png"):
+        write_image(tmp_path / "deep.png", smooth_rgb(4, 4), bits=12)
+    assert listing(tmp_path) == []
+
+
+@pytest.mark.parametrize("bits, top", [(8, 255), (16, 65535)])
+def test_data_map_is_stored_without_transfer_curve(tmp_path, bits, top):
+    mask = np.array([[0.0, 0.25, 0.5, 1.0]], dtype=np.float32)
+    write_image(tmp_path / "mask.png", mask, bits=bits, srgb=False)
+    stored = oiio.ImageInput.open(str(tmp_path / "mask.png")).read_image(oiio.FLOAT)
+    np.testing.assert_array_equal(np.round(stored[..., 0] * top), np.floor(mask * top + 0.5))
+    image = read_image(tmp_path / "mask.png")
+    np.testing.assert_allclose(linear_to_srgb(image.rgb[..., 0]), mask, atol=0.5 / top + 1e-6)
+
+
+def test_png_with_alpha_is_stored_unpremultiplied(tmp_path):
+    pil_image = pytest.importorskip("PIL.Image")
+    write_image(tmp_path / "half_alpha.png", np.full((4, 4, 3), 1.0, np.float32),
+                np.full((4, 4), 0.5, np.float32))
+    stored = np.asarray(pil_image.open(tmp_path / "half_alpha.png"))
+    assert stored.shape == (4, 4, 4)
+    np.testing.assert_array_equal(stored[..., :3], 255)
+    np.testing.assert_array_equal(stored[..., 3], 128)
+
+
+def test_sixteen_bit_precision_is_kept(tmp_path):
+    ramp = np.tile(np.linspace(0.0, 1.0, 4096, dtype=np.float32), (2, 1))
+    write_image(tmp_path / "ramp16.png", ramp, bits=16)
+    image = read_image(tmp_path / "ramp16.png")
+    assert image.bits == 16
+    assert len(np.unique(image.rgb[..., 0])) > 256
+
+
+def test_gray_map_writes_one_channel_and_reads_as_three_equal(tmp_path):
+    gray = np.tile(np.linspace(0.0, 1.0, 30, dtype=np.float32), (10, 1))
+    write_image(tmp_path / "ao.png", gray)
+    assert oiio.ImageInput.open(str(tmp_path / "ao.png")).spec().nchannels == 1
+    image = read_image(tmp_path / "ao.png")
+    assert image.rgb.shape == (10, 30, 3) and image.alpha is None
+    np.testing.assert_array_equal(image.rgb[..., 0], image.rgb[..., 1])
+    np.testing.assert_array_equal(image.rgb[..., 0], image.rgb[..., 2])
+    np.testing.assert_allclose(linear_to_srgb(image.rgb[..., 0]), linear_to_srgb(gray),
+                               atol=0.5 / 255 + 1e-6)
+
+
+def test_gray_alpha_png_reads_as_gray_rgb_and_alpha(tmp_path):
+    pil_image = pytest.importorskip("PIL.Image")
+    stored = np.zeros((6, 9, 2), dtype=np.uint8)
+    stored[..., 0] = 128
+    stored[..., 1] = np.arange(9) * 30
+    pil_image.fromarray(stored, mode="LA").save(tmp_path / "gray_alpha.png")
+    image = read_image(tmp_path / "gray_alpha.png")
+    np.testing.assert_allclose(image.rgb, 0.2158605, atol=1e-6)
+    np.testing.assert_allclose(image.alpha, stored[..., 1] / 255.0, atol=1e-6)
+
+
+def test_one_by_one_image_reads(tmp_path):
+    write_image(tmp_path / "dot.png", np.full((1, 1, 3), 0.21404114, np.float32))
+    image = read_image(tmp_path / "dot.png")
+    assert image.rgb.shape == (1, 1, 3)
+    np.testing.assert_allclose(image.rgb, 0.21586050, atol=1e-6)  # 0.5 encoded -> 128/255
+
+
+def test_photo_with_nan_reads_without_crashing(tmp_path, smooth_rgb):
+    rgb = smooth_rgb(8, 8)
+    rgb[3, 4] = np.nan
+    write_image(tmp_path / "nan_photo.exr", rgb, half=False)
+    image = read_image(tmp_path / "nan_photo.exr")
+    assert np.isnan(image.rgb[3, 4]).all()
+    assert np.isfinite(np.delete(image.rgb.reshape(-1, 3), 3 * 8 + 4, axis=0)).all()
+
+
+def test_exr_data_window_is_placed_in_display_window(tmp_path):
+    path = str(tmp_path / "windowed.exr")
+    spec = oiio.ImageSpec(3, 2, 3, oiio.FLOAT)
+    spec.x, spec.y = 4, 1
+    spec.full_x, spec.full_y, spec.full_width, spec.full_height = 0, 0, 8, 5
+    output = oiio.ImageOutput.create(path)
+    output.open(path, spec)
+    output.write_image(np.full((2, 3, 3), 0.7, np.float32))
+    output.close()
+    image = read_image(path)
+    expected = np.zeros((5, 8, 3), np.float32)
+    expected[1:3, 4:7] = 0.7
+    np.testing.assert_array_equal(image.rgb, expected)
+
+
+def test_sixteen_bit_tiff_reads_and_decodes(tmp_path):
+    path = str(tmp_path / "scan16.tif")
+    stored = np.tile(np.arange(0, 65536, 64, dtype=np.uint16), (2, 1))  # 1024 levels
+    stored = np.repeat(stored[:, :, None], 3, axis=2)
+    output = oiio.ImageOutput.create(path)
+    output.open(path, oiio.ImageSpec(1024, 2, 3, oiio.UINT16))
+    output.write_image(stored)
+    output.close()
+    image = read_image(path)
+    assert (image.encoded, image.bits) == (True, 16)
+    np.testing.assert_allclose(image.rgb, srgb_decode_reference(stored / 65535.0), atol=1e-6)
+
+
+def test_lossless_webp_with_alpha_reads(tmp_path):
+    pil_image = pytest.importorskip("PIL.Image")
+    stored = np.zeros((6, 8, 4), dtype=np.uint8)
+    stored[..., :3] = (200, 100, 30)
+    stored[..., 3] = np.arange(8) * 32 + 10
+    pil_image.fromarray(stored, mode="RGBA").save(tmp_path / "sticker.webp", lossless=True)
+    image = read_image(tmp_path / "sticker.webp")
+    np.testing.assert_allclose(image.rgb, srgb_decode_reference(stored[..., :3] / 255.0),
+                               atol=1e-6)
+    np.testing.assert_allclose(image.alpha, stored[..., 3] / 255.0, atol=1e-6)
+
+
+def test_cmyk_jpeg_reads_as_plausible_rgb(cmyk_jpeg):
+    path, expected = cmyk_jpeg
+    image = read_image(path)
+    assert image.rgb.shape == expected.shape
+    encoded = np.round(linear_to_srgb(image.rgb) * 255.0)
+    assert np.abs(encoded - expected).max() <= 4
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_orientation_matches_pillow(exif_jpeg, orientation):
+    pil_image = pytest.importorskip("PIL.Image")
+    pil_ops = pytest.importorskip("PIL.ImageOps")
+    path, _ = exif_jpeg(orientation)
+    reference = np.asarray(pil_ops.exif_transpose(pil_image.open(path)), dtype=np.float32)
+    image = read_image(path)
+    assert image.rgb.shape == reference.shape
+    encoded = linear_to_srgb(image.rgb) * 255.0
+    assert np.abs(encoded - reference).max() <= 3.0
+    assert image_size(path) == (reference.shape[1], reference.shape[0])
+
+
+def test_exif_orientation_6_puts_top_left_block_top_right(exif_jpeg):
+    path, stored = exif_jpeg(6)  # stored 24x40; displayed turned 90 degrees clockwise
+    image = read_image(path)
+    assert image.rgb.shape == (40, 24, 3)
+    bright = linear_to_srgb(image.rgb[..., 0]) > 0.9
+    rows, cols = np.nonzero(bright)
+    # stored rows 0..7, cols 0..15 -> displayed rows 0..15, cols 16..23
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (0, 15, 16, 23)
+
+
+def test_image_size_reads_header(tmp_path):
+    write_image(tmp_path / "wide.exr", np.zeros((7, 13, 3), np.float32))
+    assert image_size(tmp_path / "wide.exr") == (13, 7)
+
+
+def test_set_io_threads_sets_oiio_attribute():
+    before = oiio.get_int_attribute("threads")
+    try:
+        images.set_io_threads(3)
+        assert oiio.get_int_attribute("threads") == 3
+    finally:
+        oiio.attribute("threads", before)
+
+
+# --- bad inputs ---------------------------------------------------------------------------
+
+def test_bad_input_raises_input_error_naming_file(bad_input, tmp_path):
+    kind, path = bad_input
+    before = listing(tmp_path)
+    with pytest.raises(InputError) as caught:
+        read_image(path)
+    assert path.name in str(caught.value), kind
+    assert caught.value.path == str(path)
+    assert caught.value.fix
+    assert listing(tmp_path) == before
+
+
+def test_bad_header_image_size_raises_input_error(bad_header):
+    kind, path = bad_header
+    with pytest.raises(InputError, match=path.name):
+        image_size(path)
+
+
+def test_huge_header_is_refused_before_decoding(huge_header_png):
+    start = time.perf_counter()
+    with pytest.raises(InputError) as caught:
+        read_image(huge_header_png)
+    assert time.perf_counter() - start < 1.0  # decoding 1.6 gigapixels would take far longer
+    message = str(caught.value)
+    assert huge_header_png.name in message and "40000x40000" in message
+    assert "--max-pixels" in message
+
+
+def test_implausible_header_is_refused(tmp_path, implausible_header_png):
+    path = implausible_header_png
+    before = listing(tmp_path)
+    with pytest.raises(InputError, match="bomb.png"):
+        read_image(path)
+    assert listing(tmp_path) == before
+
+
+def test_huge_header_size_is_read_from_header(huge_header_png):
+    assert image_size(huge_header_png) == (40000, 40000)
+
+
+def test_max_pixels_is_inclusive(tmp_path, smooth_rgb):
+    write_image(tmp_path / "small.png", smooth_rgb(10, 20))
+    assert read_image(tmp_path / "small.png", max_pixels=200).rgb.shape == (10, 20, 3)
+    with pytest.raises(InputError, match="small.png"):
+        read_image(tmp_path / "small.png", max_pixels=199)
+
+
+def test_unsupported_channel_layout_is_refused(tmp_path):
+    path = str(tmp_path / "five_channels.exr")
+    spec = oiio.ImageSpec(4, 3, 5, oiio.FLOAT)
+    spec.channelnames = ("u", "v", "w", "x", "y")
+    output = oiio.ImageOutput.create(path)
+    output.open(path, spec)
+    output.write_image(np.zeros((3, 4, 5), np.float32))
+    output.close()
+    with pytest.raises(InputError, match="five_channels.exr"):
+        read_image(path)
+
+
+# --- bad outputs and atomic writes --------------------------------------------------------
+
+def test_output_under_a_regular_file_is_refused(tmp_path, smooth_rgb):
+    blocker = tmp_path / "not_a_directory"
+    blocker.write_text("a file standing where the output directory should be")
+    target = blocker / "relit.png"
+    with pytest.raises(OutputError) as caught:
+        write_image(target, smooth_rgb(4, 4))
+    assert "relit.png" in str(caught.value) and "-o" in str(caught.value)
+    assert listing(tmp_path) == ["not_a_directory"]
+
+
+def test_output_in_missing_directory_is_refused(tmp_path, smooth_rgb):
+    with pytest.raises(OutputError, match="relit.png"):
+        write_image(tmp_path / "no_such_dir" / "relit.png", smooth_rgb(4, 4))
+    assert listing(tmp_path) == []
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes through chmod 0o500")
+def test_output_in_read_only_directory_is_refused(tmp_path, smooth_rgb):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        with pytest.raises(OutputError, match="relit.png"):
+            write_image(locked / "relit.png", smooth_rgb(4, 4))
+        assert listing(locked) == []
+    finally:
+        locked.chmod(0o700)
+
+
+@pytest.mark.skipif(not os.path.isdir("/sys/kernel"), reason="needs Linux sysfs")
+def test_output_where_even_root_cannot_create_files_is_refused(smooth_rgb):
+    # sysfs never lets anyone, root included, create a regular file
+    target = "/sys/relightcli_output_probe.png"
+    with pytest.raises(OutputError, match="relightcli_output_probe.png"):
+        write_image(target, smooth_rgb(4, 4))
+    assert not os.path.exists(target)
+
+
+@pytest.mark.parametrize("name", ["relit.tiff", "relit", "relit.webp"])
+def test_unsupported_output_extension_is_refused(tmp_path, name, smooth_rgb):
+    with pytest.raises(OutputError, match=name):
+        write_image(tmp_path / name, smooth_rgb(4, 4))
+    assert listing(tmp_path) == []
+
+
+def test_overwrite_false_keeps_existing_file(tmp_path, smooth_rgb):
+    target = tmp_path / "keep.png"
+    target.write_bytes(b"previous result")
+    with pytest.raises(OutputError, match="keep.png"):
+        write_image(target, smooth_rgb(4, 4), overwrite=False)
+    assert target.read_bytes() == b"previous result"
+
+
+def _half_written_then(outcome):
+    """A stand-in for `_write_pixels` that leaves half a file, then fails with `outcome`."""
+
+    def fail(path, pixels, spec):
+        with open(path, "wb") as handle:
+            handle.write(b"\x89PNG\r\n\x1a\n partial")
+        if isinstance(outcome, Exception):
+            raise outcome
+        return outcome
+
+    return fail
+
+
+@pytest.mark.parametrize("outcome", ["No space left on device (injected)",
+                                     RuntimeError("writer crashed (injected)")],
+                         ids=["writer-reports-error", "writer-raises"])
+def test_failed_write_leaves_no_temporary_and_old_file_intact(tmp_path, monkeypatch, outcome,
+                                                              smooth_rgb):
+    target = tmp_path / "relit.png"
+    target.write_bytes(b"previous result")
+    monkeypatch.setattr(images, "_write_pixels", _half_written_then(outcome))
+    expected = RuntimeError if isinstance(outcome, Exception) else OutputError
+    with pytest.raises(expected) as caught:
+        write_image(target, smooth_rgb(4, 4))
+    if expected is OutputError:
+        assert "relit.png" in str(caught.value)
+    assert listing(tmp_path) == ["relit.png"]
+    assert target.read_bytes() == b"previous result"
+
+
+def test_failed_first_write_leaves_nothing(tmp_path, monkeypatch, smooth_rgb):
+    monkeypatch.setattr(images, "_write_pixels", _half_written_then("injected failure"))
+    with pytest.raises(OutputError, match="fresh.exr"):
+        write_image(tmp_path / "fresh.exr", smooth_rgb(4, 4))
+    assert listing(tmp_path) == []
+
+
+def test_written_file_has_ordinary_permissions(tmp_path, smooth_rgb):
+    write_image(tmp_path / "shared.png", smooth_rgb(4, 4))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "shared.png").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+# --- real files from ../shared/data, against independent decoders -----------------------
+
+@pytest.mark.parametrize("name", PHOTOS)
+def test_shared_photo_matches_pillow(name):
+    pil_image = pytest.importorskip("PIL.Image")
+    pil_ops = pytest.importorskip("PIL.ImageOps")
+    path = shared_file("photos", name)
+    reference = pil_ops.exif_transpose(pil_image.open(path))
+    has_alpha = "A" in reference.getbands()
+    reference = np.asarray(reference.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32)
+    image = read_image(path)
+    assert image.rgb.shape == reference.shape[:2] + (3,)
+    encoded = linear_to_srgb(image.rgb) * 255.0
+    # two JPEG decoders may differ by a rounding step or two (IDCT, chroma upsampling)
+    assert np.abs(encoded - reference[..., :3]).max() <= 2.5
+    if has_alpha:
+        np.testing.assert_allclose(image.alpha * 255.0, reference[..., 3], atol=1e-3)
+
+
+@pytest.mark.parametrize("name", HDRIS)
+def test_shared_hdri_matches_opencv(name):
+    cv2 = pytest.importorskip("cv2")
+    path = shared_file("hdri", name)
+    reference = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_COLOR)[..., ::-1]
+    image = read_image(path)
+    assert image.rgb.shape == (512, 1024, 3) and not image.encoded
+    np.testing.assert_allclose(image.rgb, reference, rtol=1e-6, atol=0.0)

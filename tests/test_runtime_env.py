@@ -1,0 +1,147 @@
+"""Inference needs no torch: a fresh virtual environment built from the runtime requirements
+alone (what the Dockerfile installs) runs `relight` and imports every relightcli module.
+The Dockerfile is checked by construction, since no Docker engine runs here."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DOCKERFILE = (REPO / "Dockerfile").read_text()
+
+# Packages every python:3.11-slim-bookworm image has (Debian essentials + Python's own needs).
+BASE_IMAGE_PACKAGES = {"libc6", "libgcc-s1", "libstdc++6", "zlib1g", "libcom-err2", "libgpg-error0"}
+
+IMPORT_EVERYTHING = """
+import importlib, pkgutil, sys
+import relightcli
+names = [m.name for m in pkgutil.walk_packages(relightcli.__path__, 'relightcli.')
+         if not m.name.endswith('__main__')]  # __main__ runs the CLI
+for name in names:
+    importlib.import_module(name)
+torch = [m for m in sys.modules if m == 'torch' or m.startswith('torch.')]
+print(len(names), 'modules', 'torch' if torch else 'no-torch')
+"""
+
+PYMESHLAB_IO = """
+import sys, pymeshlab
+ms = pymeshlab.MeshSet()
+ms.create_sphere()
+ms.save_current_mesh(sys.argv[1])
+ms.load_new_mesh(sys.argv[1])
+print(ms.current_mesh().vertex_number())
+"""
+
+
+@pytest.fixture(scope="module")
+def runtime_venv(tmp_path_factory):
+    """A venv with `pip install -c requirements.lock .` and nothing else (no system packages)."""
+    if shutil.which("pip") is None and not (Path(sys.executable).parent / "pip").exists():
+        pytest.skip("pip is not available")
+    root = tmp_path_factory.mktemp("runtime")
+    venv = root / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    src = root / "src"  # a copy, so the build leaves nothing in the checkout
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".git", ".venv*", "*.egg-info", "build", "__pycache__", "models", "examples", "bench", "export"))
+    result = subprocess.run(
+        [str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
+         "-c", str(src / "requirements.lock"), str(src)],
+        capture_output=True, text=True, timeout=900)
+    if result.returncode != 0:
+        pytest.fail(f"runtime install failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
+    return venv
+
+
+def run_in(venv: Path, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env["RELIGHT_MODELS_DIR"] = str(REPO / "models")
+    return subprocess.run(list(args), capture_output=True, text=True, cwd=cwd or venv, env=env, timeout=300)
+
+
+def test_runtime_venv_has_no_torch(runtime_venv):
+    out = run_in(runtime_venv, str(runtime_venv / "bin" / "python"), "-c",
+                 "import importlib.util as u; print(u.find_spec('torch') is None)")
+    assert out.stdout.strip() == "True", out.stderr
+
+
+def test_runtime_venv_relight_help_and_info(runtime_venv):
+    relight = str(runtime_venv / "bin" / "relight")
+    help_out = run_in(runtime_venv, relight, "--help")
+    assert help_out.returncode == 0, help_out.stderr
+    assert "--hdr" in help_out.stdout
+    info = run_in(runtime_venv, relight, "info", "--json")
+    assert info.returncode == 0, info.stderr
+    assert "CPUExecutionProvider" in info.stdout
+
+
+def test_runtime_venv_imports_every_module_without_torch(runtime_venv):
+    out = run_in(runtime_venv, str(runtime_venv / "bin" / "python"), "-c", IMPORT_EVERYTHING)
+    assert out.returncode == 0, out.stderr
+    count, _, verdict = out.stdout.split()
+    assert int(count) >= 10 and verdict == "no-torch", out.stdout
+
+
+def test_runtime_venv_pymeshlab_io_plugins_load(runtime_venv, tmp_path):
+    out = run_in(runtime_venv, str(runtime_venv / "bin" / "python"), "-c", PYMESHLAB_IO, str(tmp_path / "s.ply"))
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout.split()[-1]) > 100
+
+
+def dockerfile_apt_packages() -> set[str]:
+    block = re.search(r"apt-get install[^\n]*\\\n((?:.*\\\n)+)", DOCKERFILE)
+    assert block, "the runtime stage installs no Debian packages"
+    return {word for word in block.group(1).replace("\\", " ").split() if re.fullmatch(r"lib[\w.+-]+", word)}
+
+
+def test_dockerfile_installs_every_system_library_the_wheels_load(runtime_venv):
+    if shutil.which("dpkg") is None or shutil.which("ldd") is None:
+        pytest.skip("needs Debian's dpkg and ldd (the image is Debian bookworm too)")
+    site = next((runtime_venv / "lib").glob("python3*/site-packages"))
+    system_libs = set()
+    for so in site.rglob("*.so*"):
+        out = subprocess.run(["ldd", str(so)], capture_output=True, text=True)
+        for line in out.stdout.splitlines():
+            match = re.search(r"=> (/\S+)", line)
+            if match and str(site) not in match.group(1):
+                system_libs.add(os.path.realpath(match.group(1)))
+    packages = set()
+    for lib in sorted(system_libs):
+        owner = subprocess.run(["dpkg", "-S", lib], capture_output=True, text=True)
+        if owner.returncode != 0:  # usr-merge: dpkg may know the /lib spelling
+            owner = subprocess.run(["dpkg", "-S", lib.replace("/usr/lib/", "/lib/")], capture_output=True, text=True)
+        if owner.returncode == 0:
+            packages.add(owner.stdout.split(":")[0])
+    assert {"libgl1", "libopengl0", "libx11-6", "libxcb1"} <= packages  # pymeshlab's, as documented
+    missing = packages - BASE_IMAGE_PACKAGES - dockerfile_apt_packages()
+    assert not missing, f"the Dockerfile's runtime stage must apt-get install {sorted(missing)}"
+
+
+def test_dockerfile_shape():
+    assert DOCKERFILE.count("FROM python:3.11-slim-bookworm") == 2  # multi-stage, same base
+    assert "torch" not in re.sub(r"#.*", "", DOCKERFILE).replace("find_spec('torch')", "")
+    assert "-c requirements.lock ." in DOCKERFILE  # the same pins as the runtime test
+    assert re.search(r"^USER (?!root)\w+", DOCKERFILE, re.M)
+    assert 'ENTRYPOINT ["relight"]' in DOCKERFILE
+    assert "COPY models " in DOCKERFILE and "RELIGHT_MODELS_DIR" in DOCKERFILE
+    assert "export" in (REPO / ".dockerignore").read_text().split()
+
+
+def test_runtime_dependencies_exclude_torch():
+    import tomllib
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    runtime = " ".join(project["dependencies"]).lower()
+    assert "torch" not in runtime and "onnx>=" not in runtime
+    pinned = {line.split("==")[0].lower() for line in (REPO / "requirements.lock").read_text().splitlines()
+              if "==" in line and not line.startswith("#")}
+    for requirement in project["dependencies"]:
+        name = re.split(r"[<>=\[ ]", requirement)[0].lower()
+        assert name in pinned, f"{name} is a runtime dependency missing from requirements.lock"
