@@ -1,0 +1,165 @@
+"""Geometry module: pix2pixHD-like U-Nets from the image alone (paper Sec. 3.1, trained separately).
+
+- `geometry` net: front normal, back normal, front depth, back depth, person mask. What the paper
+  gets from PIFuHD we get from this net: the two depth maps (front and back surface along the
+  camera ray) and the mask make a watertight, pixel-aligned mesh; the back normals shade it.
+- `ao` net: ambient occlusion (1 ch, sigmoid) with skip connections, as the paper says.
+
+Both are the same encoder/decoder (7x7 stem, `n_down` stride-2 convs, residual bottleneck,
+bilinear-upsample + conv decoder, optional U-Net skips, 7x7 head); only the heads differ.
+
+Input: `image`, (N, 3, H, W) float32 linear RGB in [0, 1] (clipped), gamma-encoded inside the
+graph. H, W divisible by 2**n_down.
+Depth convention: camera-frame Z (+Z toward the viewer) in units where the square crop spans
+[-1, 1] in X and Y; back depth = front depth - softplus(thickness) so back <= front always.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .blocks import ResidualBlock, conv_norm_act, encode_display
+from .contract import IOContract, image_spec
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    width: int = 64  # channels after the stem; doubles at each downsampling
+    max_width: int = 1024
+    n_down: int = 4
+    n_res: int = 9  # residual blocks in the bottleneck
+    skips: bool = True
+    norm: str = "instance"  # pix2pixHD uses instance norm
+
+    @property
+    def multiple(self) -> int:
+        return 2**self.n_down
+
+    def widths(self) -> list[int]:
+        return [min(self.width * 2**k, self.max_width) for k in range(self.n_down + 1)]
+
+
+GEOMETRY_CONFIGS = {
+    "paper": UNetConfig(width=64, max_width=1024, n_down=4, n_res=9, skips=True),
+    "small": UNetConfig(width=12, max_width=96, n_down=4, n_res=2, skips=True, norm="batch"),
+}
+AO_CONFIGS = GEOMETRY_CONFIGS
+
+
+class UNetBackbone(nn.Module):
+    """Encoder / residual bottleneck / decoder. Returns the full-resolution features,
+    (N, cfg.width, H, W), and the bottleneck's, (N, widths[-1], H / multiple, W / multiple)."""
+
+    def __init__(self, c_in: int, cfg: UNetConfig):
+        super().__init__()
+        w = cfg.widths()
+        self.cfg = cfg
+        self.stem = conv_norm_act(c_in, w[0], 7, norm=cfg.norm)
+        self.down = nn.ModuleList(
+            conv_norm_act(w[k], w[k + 1], 3, stride=2, norm=cfg.norm) for k in range(cfg.n_down)
+        )
+        self.bottleneck = nn.Sequential(*[ResidualBlock(w[-1], norm=cfg.norm) for _ in range(cfg.n_res)])
+        # Decoder step k goes from level k+1 to level k; with skips it also sees the encoder's level k.
+        self.up = nn.ModuleList(
+            conv_norm_act(w[k + 1] + (w[k] if cfg.skips else 0), w[k], 3, norm=cfg.norm)
+            for k in reversed(range(cfg.n_down))
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        feats = [self.stem(x)]
+        for down in self.down:
+            feats.append(down(feats[-1]))
+        y = bottleneck = self.bottleneck(feats[-1])
+        for up, skip in zip(self.up, reversed(feats[:-1])):
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            if self.cfg.skips:
+                y = torch.cat([y, skip], dim=1)
+            y = up(y)
+        return y, bottleneck
+
+
+def unit_vectors(v: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """(N, 3, H, W) -> same shape, each pixel's vector scaled to unit length."""
+    return v * torch.rsqrt((v * v).sum(dim=1, keepdim=True) + eps)
+
+
+class GeometryNet(nn.Module):
+    """image -> (front_normal, back_normal, front_depth, back_depth, mask), all (N, C, H, W)."""
+
+    family = "geometry"
+    output_names = ("front_normal", "back_normal", "front_depth", "back_depth", "mask")
+
+    def __init__(self, cfg: UNetConfig = GEOMETRY_CONFIGS["paper"]):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = UNetBackbone(3, cfg)
+        # 3 + 3 normal, front depth, thickness, mask logit
+        self.head = nn.Conv2d(cfg.width, 9, 7, padding=3)
+
+    def forward(self, image: torch.Tensor):
+        h = self.head(self.backbone(encode_display(image))[0])
+        front_depth = h[:, 6:7]
+        back_depth = front_depth - F.softplus(h[:, 7:8])
+        return (
+            unit_vectors(h[:, 0:3]),
+            unit_vectors(h[:, 3:6]),
+            front_depth,
+            back_depth,
+            torch.sigmoid(h[:, 8:9]),
+        )
+
+    def io_contract(self) -> IOContract:
+        return IOContract(
+            family=self.family,
+            inputs=(image_spec("image", 3, "linear RGB in [0, 1], person crop"),),
+            outputs=(
+                image_spec("front_normal", 3, "unit normals, camera frame, +Z to viewer"),
+                image_spec("back_normal", 3, "unit normals of the back surface"),
+                image_spec("front_depth", 1, "camera Z, crop spans [-1, 1] in X and Y"),
+                image_spec("back_depth", 1, "camera Z of the back surface, <= front_depth"),
+                image_spec("mask", 1, "person alpha in [0, 1]"),
+            ),
+            multiple=self.cfg.multiple,
+            colour_space="linear sRGB primaries",
+            normalisation="clip to [0,1], x**(1/2.2)*2-1 inside the graph",
+            config=asdict(self.cfg),
+        )
+
+
+class AONet(nn.Module):
+    """image -> ambient occlusion (N, 1, H, W) in [0, 1] (1 = unoccluded)."""
+
+    family = "ao"
+    output_names = ("ao",)
+
+    def __init__(self, cfg: UNetConfig = AO_CONFIGS["paper"]):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = UNetBackbone(3, cfg)
+        self.head = nn.Conv2d(cfg.width, 1, 7, padding=3)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.head(self.backbone(encode_display(image))[0]))
+
+    def io_contract(self) -> IOContract:
+        return IOContract(
+            family=self.family,
+            inputs=(image_spec("image", 3, "linear RGB in [0, 1], person crop"),),
+            outputs=(image_spec("ao", 1, "ambient occlusion in [0, 1], 1 = open"),),
+            multiple=self.cfg.multiple,
+            colour_space="linear sRGB primaries",
+            normalisation="clip to [0,1], x**(1/2.2)*2-1 inside the graph",
+            config=asdict(self.cfg),
+        )
+
+
+def geometry_net(size: str = "paper") -> GeometryNet:
+    return GeometryNet(GEOMETRY_CONFIGS[size])
+
+
+def ao_net(size: str = "paper") -> AONet:
+    return AONet(AO_CONFIGS[size])
