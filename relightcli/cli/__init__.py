@@ -119,6 +119,11 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("--workers", type=_positive_int, metavar="N",
                         help="processes for folder/many inputs (default: one per core; threads are "
                              "split so workers x threads <= cores)")
+    parser.add_argument("--engine", choices=("local", "ray"), default="local",
+                        help="local process pool (default) or Ray Data (needs the 'ray' extra)")
+    parser.add_argument("--address", metavar="ADDR",
+                        help="with --engine ray: an existing cluster ('auto', 'ray://head:10001'); "
+                             "default: start a local Ray instance")
     parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
     parser.add_argument("--resolution", type=_positive_int, default=512, metavar="PX",
                         help="working resolution of the square person crop (default 512, the paper's)")
@@ -172,6 +177,8 @@ def run_relight(args) -> int:
     from relightcli import batch
     from relightcli.pipeline import RelightOptions, RelightWorker
 
+    if args.address and args.engine != "ray":
+        raise UsageError("--address goes with --engine ray", fix="add --engine ray or drop --address")
     if args.skip_existing and args.overwrite:
         raise UsageError("--skip-existing and --overwrite contradict each other", fix="pass one of them")
     threads = args.threads or default_threads()
@@ -189,11 +196,17 @@ def run_relight(args) -> int:
         target_error=args.target_error, seed=args.seed, threads=max(1, threads // workers),
         background=args.background, max_pixels=args.max_pixels, resolution=args.resolution)
 
-    progress = _Progress(len(items), enabled=sys.stderr.isatty() and not args.json)
-    reports = batch.run_items(
-        items, RelightWorker(env, options), workers=workers,
-        skip_existing=args.skip_existing, overwrite=args.overwrite, on_done=progress.step)
-    progress.close()
+    worker = RelightWorker(env, options)
+    if args.engine == "ray":
+        reports = batch.run_items_ray(
+            items, worker, workers=workers, threads_per_worker=options.threads,
+            address=args.address, skip_existing=args.skip_existing, overwrite=args.overwrite)
+    else:
+        progress = _Progress(len(items), enabled=sys.stderr.isatty() and not args.json)
+        reports = batch.run_items(
+            items, worker, workers=workers,
+            skip_existing=args.skip_existing, overwrite=args.overwrite, on_done=progress.step)
+        progress.close()
     for report in reports:
         report.warnings[:0] = env_warnings
     summary = batch.summary(reports)
