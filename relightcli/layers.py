@@ -31,5 +31,8 @@ LAYERS = {
 
 DEFAULT_OUTPUTS = ("relit",)
 
+# Shading methods: the paper (ray tracing + learned refinement), its ablation, and the SH baselines.
+METHODS = ("raytrace", "raytrace-norefine", "sh9", "sh25")
+
 # Inputs a directory scan picks up (lower-case extensions).
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".exr", ".hdr")

@@ -1,8 +1,8 @@
-"""One image, top to bottom: the plan of stages this input and these options need, and the stages.
+"""One image, top to bottom: the plan of stages this input and these options need, then the stages.
 
 The plan is a dependency closure: each requested output names the stages it needs, each stage the
-stages before it; everything else is left out and the report says why. Stages whose trained
-networks are not shipped raise MissingDependencyError naming the model file and the fix.
+stages before it; everything else is left out and the report says why. The stage functions live in
+relightcli.stages; network sessions are loaded on first use and kept for the whole batch.
 """
 
 from __future__ import annotations
@@ -12,27 +12,27 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from relightcli.batch import Item, ItemReport
-from relightcli.errors import InputError, MissingDependencyError
+import numpy as np
 
-METHODS = ("raytrace", "raytrace-norefine", "sh9", "sh25")
+from relightcli.batch import Item, ItemReport
+from relightcli.errors import InputError
 
 # A person needs some pixels: below this side length nothing meaningful can be estimated.
 MIN_SIDE = 32
 
 # Stages in execution order, each with the stages it needs.
 STAGE_NEEDS = {
-    "load": (),
-    "mask": ("load",),
-    "crop": ("mask",),
-    "geometry": ("crop",),  # normal, AO, back-side geometry nets
+    "mask": (),  # from the input's alpha, --mask, or the mask net
+    "crop": ("mask",),  # square around the person at the working resolution
+    "geometry": ("crop",),  # front/back normals and depth
+    "ao": ("crop",),  # ambient occlusion net
     "delight": ("geometry",),  # albedo + input-light estimate
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
     "face": ("reconstruct",),  # face detection, morphable-model fit, face shading
     "raytrace": ("reconstruct",),  # coarse body shading under the target environment
     "sh_shading": ("geometry",),  # SH-9/25 irradiance from predicted normals (baselines)
-    "refine": ("raytrace", "face"),  # body refinement net, then face refinement
-    "compose": (),  # relit = albedo * shading, paste-back, background
+    "refine": ("raytrace", "ao", "face"),  # body refinement net, then face refinement
+    "compose": ("crop",),  # relit = albedo * shading, pasted back
 }
 
 # Which stage produces the shading for each method.
@@ -45,7 +45,7 @@ def output_needs(output: str, method: str) -> tuple[str, ...]:
     return {
         "mask": ("mask",),
         "normal": ("geometry",),
-        "ao": ("geometry",),
+        "ao": ("ao",),
         "albedo": ("delight",),
         "light": ("delight",),
         "mesh": ("reconstruct",),
@@ -102,24 +102,30 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
 
 class RelightWorker:
     """Relights items one after another; picklable, so a process pool or a Ray actor can hold
-    one. `setup()` loads what is shared by every item of the batch (network sessions) once."""
+    one. `setup()` prepares what every item of the batch shares (threads, model sessions)."""
 
-    def __init__(self, env, options: "RelightOptions"):
+    def __init__(self, env, options: RelightOptions):
         self.env, self.options = env, options
+        self.models = None
 
     def setup(self) -> None:
         import cv2
 
         from relightcli.io.images import set_io_threads
+        from relightcli.stages import Models
 
         cv2.setNumThreads(self.options.threads)
         set_io_threads(self.options.threads)
+        self.models = Models(self.options.threads)
 
     def __call__(self, item: Item) -> ItemReport:
-        return relight_item(item, self.env, self.options)
+        return relight_item(item, self.env, self.options, self.models)
+
+    def __getstate__(self):
+        return {"env": self.env, "options": self.options, "models": None}  # sessions stay per process
 
 
-def relight_item(item: Item, env, options: RelightOptions) -> ItemReport:
+def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemReport:
     """Run the planned stages on one input and write its outputs. Raises project errors."""
     from relightcli.io.images import read_image
 
@@ -128,17 +134,49 @@ def relight_item(item: Item, env, options: RelightOptions) -> ItemReport:
         image = read_image(item.input, max_pixels=options.max_pixels)
         _check_usable_size(image, item.input)
         mask = _input_mask(image, options, item.input)
-    plan = plan_stages(options, has_alpha=mask is not None)
+    frame, plan = run_stages(image.rgb, mask, env, options, report, models)
     report.details["plan"] = plan.as_dict()
-    state = {"image": image, "mask": mask, "env": env}
-    for stage in plan.run[1:]:
-        with _timed(report, stage):
-            STAGES[stage](state, options)
     with _timed(report, "write"):
         for name, path in item.outputs.items():
-            _write_layer(name, path, state)
+            write_layer(name, path, frame, options)
             report.outputs[name] = str(path)
+    report.details["stages"] = frame.notes
     return report
+
+
+def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: ItemReport, models=None):
+    """Plan and run the stages on arrays. Returns (frame, plan)."""
+    from relightcli.stages import STAGES, Frame, Models
+
+    models = models or Models(options.threads)
+    plan = plan_stages(options, has_alpha=mask is not None)
+    frame = Frame(image=image, mask=mask, env=env)
+    if mask is not None:
+        frame.notes["mask"] = {"source": "--mask" if options.mask_path else "alpha channel"}
+    for stage in plan.run:
+        with _timed(report, stage):
+            STAGES[stage](frame, options, models)
+    return frame, plan
+
+
+def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, models=None) -> dict:
+    """For `relight eval`: relit, albedo and shading (full frame, linear) of a scene folder."""
+    from relightcli.compose import paste_back
+    from relightcli.io.envmap import load_envmap
+    from relightcli.io.images import read_image
+    from relightcli.stages import layer_image
+
+    image = read_image(scene.input_path, max_pixels=options.max_pixels)
+    _check_usable_size(image, scene.input_path)
+    env = load_envmap(scene.target_path)
+    mask = scene.mask if use_gt_mask else None
+    frame, _ = run_stages(image.rgb, mask, env, options, ItemReport(str(scene.folder)), models)
+    height, width = image.rgb.shape[:2]
+    return {
+        "relit": frame.relit,
+        "albedo": paste_back(frame.albedo, frame.box, height, width),
+        "shading": layer_image("shading", frame, options)[0],
+    }
 
 
 def _check_usable_size(image, path) -> None:
@@ -156,7 +194,7 @@ def _input_mask(image, options: RelightOptions, input_path):
     from relightcli.io.images import read_image
 
     if options.mask_path is not None:
-        mask_image = read_image(options.mask_path, max_pixels=options.max_pixels)
+        mask_image = read_image(options.mask_path, max_pixels=options.max_pixels, srgb=False)
         if mask_image.rgb.shape[:2] != image.rgb.shape[:2]:
             raise InputError(
                 f"mask is {mask_image.rgb.shape[1]}x{mask_image.rgb.shape[0]} but the photo "
@@ -164,63 +202,36 @@ def _input_mask(image, options: RelightOptions, input_path):
                 path=options.mask_path,
                 fix="pass a mask of the same size as the photo",
             )
-        # A grey mask file is data, not colour: undo the sRGB decode read_image applied.
-        from relightcli.io.images import linear_to_srgb
-
-        values = mask_image.alpha if mask_image.alpha is not None and mask_image.alpha.min() < 1 else None
-        if values is None:
-            values = linear_to_srgb(mask_image.rgb[..., 0]) if mask_image.encoded else mask_image.rgb[..., 0]
+        # A grey mask image is data; a mask given as an alpha channel wins when it has one.
+        has_alpha = mask_image.alpha is not None and mask_image.alpha.min() < 1.0
+        values = mask_image.alpha if has_alpha else mask_image.rgb[..., 0]
         return values.clip(0.0, 1.0).astype("float32")
     if image.alpha is not None and float(image.alpha.min()) < 1.0:
         return image.alpha
     return None
 
 
-def _stage_mask(state, options):
-    if state["mask"] is None:
-        _require_model("mask", "predicts the person mask; pass --mask FILE or an RGBA input instead")
-
-
-def _stage_not_shipped(name: str, what: str):
-    def run(state, options):
-        _require_model(name, what)
-
-    return run
-
-
-def _require_model(name: str, what: str):
-    raise MissingDependencyError(
-        f"the '{name}' network ({what}) is not shipped in this build",
-        path=Path(__file__).resolve().parents[1] / "models" / "manifest.json",
-        fix="install a release with trained models, or ask only for outputs this build can make: --outputs mask with an RGBA input or --mask",
-    )
-
-
-def _stage_compose(state, options):
-    _require_model("compose", "needs albedo and shading")
-
-
-STAGES = {
-    "mask": _stage_mask,
-    "crop": lambda state, options: None,
-    "geometry": _stage_not_shipped("geometry", "normals, AO and back-side geometry"),
-    "delight": _stage_not_shipped("delight", "albedo and input lighting"),
-    "reconstruct": _stage_not_shipped("geometry", "the mesh is built from its outputs"),
-    "face": lambda state, options: None,
-    "raytrace": _stage_not_shipped("geometry", "the mesh to ray trace"),
-    "sh_shading": _stage_not_shipped("geometry", "normals for SH shading"),
-    "refine": _stage_not_shipped("refine_body", "shading refinement"),
-    "compose": _stage_compose,
-}
-
-
-def _write_layer(name: str, path: Path, state) -> None:
+def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
+    """Write one output layer of a finished frame (atomic writes)."""
     from relightcli.io.images import write_image
+    from relightcli.stages import layer_image, preview_tiles
 
-    if name == "mask":
-        write_image(path, state["mask"], bits=8, srgb=False)
-        return
-    raise MissingDependencyError(f"output '{name}' cannot be made by this build", path=path)
+    suffix = Path(path).suffix.lower()
+    if name == "light":
+        write_image(path, frame.light)
+    elif name == "mesh":
+        from relightcli.geometry import save_mesh
+
+        save_mesh(frame.mesh, path)
+    elif name == "preview":
+        from relightcli.compose import preview_sheet
+
+        write_image(path, preview_sheet(preview_tiles(frame, options)), srgb=False)
+    else:
+        hdr = suffix in (".exr", ".hdr")
+        array, alpha, srgb = layer_image(name, frame, options, hdr=hdr)
+        bits = 8 if name in ("mask", "relit") else 16
+        write_image(path, array, alpha, bits=None if hdr or suffix in (".jpg", ".jpeg") else bits, srgb=srgb)
 
 
 @contextmanager

@@ -105,7 +105,7 @@ def test_mask_output_from_alpha(tmp_path, env_path, capsys):
     assert values[0, 0] == pytest.approx(0.0)
     assert values[3, 5] == pytest.approx(0.5, abs=1 / 255)
     # The plan: mask from alpha, no network needed for this output.
-    assert item["plan"]["run"] == ["load", "mask"]
+    assert item["plan"]["run"] == ["mask"]
     assert "mask_net" in item["plan"]["skipped"]
     assert set(item["seconds"]) >= {"load", "mask", "write", "total"}
 
@@ -115,7 +115,8 @@ def test_relit_without_models_exits_3_and_writes_nothing(tmp_path, env_path, cap
     out = tmp_path / "out.png"
     code, report = run_json(capsys, [str(photo), "--hdr", str(env_path), "-o", str(out)])
     assert code == 3
-    assert "not shipped" in report["items"][0]["error"]
+    error = report["items"][0]["error"]
+    assert "manifest.json" in error and "'geometry'" in error
     assert not out.exists()
 
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 from relightcli import __version__
 from relightcli.errors import EXIT_OK, EXIT_USAGE, RelightError, UsageError
-from relightcli.layers import DEFAULT_OUTPUTS, LAYERS
+from relightcli.layers import DEFAULT_OUTPUTS, LAYERS, METHODS
 
-SUBCOMMANDS = ("shade", "info")
+SUBCOMMANDS = ("shade", "info", "eval")
 
 DESCRIPTION = """\
 Relight a photo of a person under an HDR environment map (ECCV 2022, "Geometry-aware
@@ -27,6 +27,7 @@ single-image full-body human relighting"), on the CPU.
   relight photos/ --hdr sky.hdr -o out/ --recursive  a folder
   relight shade body.obj --hdr sky.hdr -o shading.exr
                                                      ray-traced shading of any mesh
+  relight eval DATASET --method raytrace             the paper's Table 1 on scenes with ground truth
   relight info                                       models, providers, threads
 """
 
@@ -51,6 +52,17 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
                         help="print a machine-readable report on stdout")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace existing outputs (default: refuse)")
+
+
+def add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
+    """Ray-tracing effort, seed and working resolution (shared by relight and eval)."""
+    sampling = parser.add_mutually_exclusive_group()
+    sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
+    sampling.add_argument("--target-error", type=_positive_float, metavar="E",
+                          help="stop sampling at this median relative standard error (e.g. 0.02)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
+    parser.add_argument("--resolution", type=_positive_int, default=512, metavar="PX",
+                        help="working resolution of the square person crop (default 512, the paper's)")
 
 
 def _positive_int(text: str) -> int:
@@ -100,7 +112,7 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("--recursive", action="store_true", help="descend into sub-folders of INPUT folders")
     parser.add_argument("--skip-existing", action="store_true",
                         help="skip inputs whose outputs all exist (resume an interrupted batch)")
-    parser.add_argument("--method", choices=("raytrace", "raytrace-norefine", "sh9", "sh25"),
+    parser.add_argument("--method", choices=METHODS,
                         default="raytrace",
                         help="shading: ray tracing + learned refinement (paper, default), ray tracing only, "
                              "or SH-9 / SH-25 irradiance from predicted normals (baselines)")
@@ -139,6 +151,22 @@ def info_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def eval_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="relight eval", epilog=EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run the pipeline on every scene folder of DATASET and print the paper's Table 1\n"
+                    "(MSE x1e3 / SSIM / PSNR for relit, albedo, shading; foreground only; sRGB, clipped).\n"
+                    "A scene folder holds input.png, target.hdr, gt_mask.png, gt_albedo.exr,\n"
+                    "gt_shading.exr, gt_relit.exr and optionally gt_normal.exr (EXRs linear).")
+    parser.add_argument("dataset", metavar="DATASET", help="a folder of scene folders (or one scene folder)")
+    parser.add_argument("--method", choices=METHODS, default="raytrace", help="shading method to evaluate")
+    parser.add_argument("--use-gt-mask", action="store_true",
+                        help="feed the ground-truth mask instead of predicting it (isolates the relighting)")
+    add_sampling_arguments(parser)
+    add_common_arguments(parser)
+    return parser
+
+
 def shade_parser() -> argparse.ArgumentParser:
     from relightcli.cli import shade
 
@@ -158,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
         if command == "info":
             args = info_parser().parse_args(argv[1:])
             return _print_report(run_info(args), args.json)
+        if command == "eval":
+            args = eval_parser().parse_args(argv[1:])
+            return run_eval(args)
         if command == "shade":
             args = shade_parser().parse_args(argv[1:])
             return run_shade(args)
@@ -215,6 +246,34 @@ def run_relight(args) -> int:
     else:
         _print_human_summary(summary)
     return batch.exit_code(reports)
+
+
+def run_eval(args) -> int:
+    from relightcli import evaluate
+    from relightcli.pipeline import RelightOptions, predict_scene
+
+    threads = args.threads or default_threads()
+    options = RelightOptions(
+        outputs=("relit", "albedo", "shading"), method=args.method, spp=args.spp,
+        target_error=args.target_error, seed=args.seed, threads=threads, resolution=args.resolution)
+    scenes = evaluate.find_scenes(args.dataset)
+    progress = _Progress(len(scenes), enabled=sys.stderr.isatty() and not args.json)
+    result = evaluate.evaluate(
+        scenes, lambda scene: predict_scene(scene, options, use_gt_mask=args.use_gt_mask),
+        args.method, on_done=lambda entry: progress.step(entry["scene"]))
+    progress.close()
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(evaluate.format_table(result))
+        for entry in result["per_scene"]:
+            if entry["error"]:
+                print(f"FAILED {entry['scene']}: {entry['error']}", file=sys.stderr)
+    failed = [e for e in result["per_scene"] if e["error"]]
+    if not failed:
+        return EXIT_OK
+    codes = {e["exit_code"] for e in failed}
+    return codes.pop() if len(failed) == len(result["per_scene"]) and len(codes) == 1 else 1
 
 
 def _load_environment(args):
@@ -292,12 +351,13 @@ class _Progress:
     def __init__(self, total: int, enabled: bool):
         self.total, self.done, self.enabled = total, 0, enabled
 
-    def step(self, report) -> None:
+    def step(self, label) -> None:
         self.done += 1
         if self.enabled:
             width = 30
             filled = width * self.done // self.total
-            sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {report.input[-40:]}")
+            text = str(getattr(label, "input", label))[-40:]
+            sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {text}")
             sys.stderr.flush()
 
     def close(self) -> None:

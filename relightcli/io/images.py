@@ -220,12 +220,14 @@ def _is_integer(spec: oiio.ImageSpec) -> bool:
     return spec.format.basetype not in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
 
 
-def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> Image:
+def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS, srgb: bool = True) -> Image:
     """Read an image file into linear float32 RGB plus an optional straight alpha.
 
     Formats: JPEG (RGB, gray, CMYK), PNG (8/16 bit; gray, gray+alpha, RGB, RGBA), TIFF,
     WebP, EXR, HDR. The pixel count is checked against `max_pixels` from the header, before
-    any pixel is decoded. Raises InputError for anything that cannot be read.
+    any pixel is decoded. srgb=False reads integer files as data (masks, AO: value / max, no
+    transfer curve), the counterpart of write_image(..., srgb=False). Raises InputError for
+    anything that cannot be read.
     """
     path = str(path)
     image_input = _open_input(path)
@@ -237,7 +239,7 @@ def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> Ima
         image_input.close()
     rgb, alpha = _split_channels(pixels, spec, path)
     encoded = _is_integer(spec)
-    if encoded:
+    if encoded and srgb:
         rgb = srgb_to_linear(rgb)
     if alpha is not None:
         alpha = np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0).astype(np.float32)

@@ -505,3 +505,13 @@ def test_shared_hdri_matches_opencv(name):
     image = read_image(path)
     assert image.rgb.shape == (512, 1024, 3) and not image.encoded
     np.testing.assert_allclose(image.rgb, reference, rtol=1e-6, atol=0.0)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_data_maps_round_trip_exactly_without_srgb(tmp_path, bits):
+    values = np.array([[0.0, 0.25, 0.5, 1.0]], np.float32)
+    path = tmp_path / f"data{bits}.png"
+    write_image(path, values, bits=bits, srgb=False)
+    back = read_image(path, srgb=False).rgb[..., 0]
+    np.testing.assert_allclose(back, values, atol=0.5 / (2**bits - 1))
+    assert back[0, 0] == 0.0 and back[0, 3] == 1.0

@@ -1,0 +1,150 @@
+"""Between the full photo and the square working crop, and back: crop box, crop, paste-back;
+relit = albedo * shading; backgrounds; display exposure; the preview sheet.
+
+The crop's orthographic camera spans the world square [-1, 1] x [-1, 1] (CROP_RECT): pixel
+(i, j) of an R x R crop has its centre at x = -1 + (j + 0.5) 2/R, y = 1 - (i + 0.5) 2/R
+(DESIGN.md's pixel-centre formula), the same square the geometry nets predict depth in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from relightcli.errors import InputError
+from relightcli.io.images import linear_to_srgb, srgb_to_linear
+
+CROP_RECT = (-1.0, 1.0, -1.0, 1.0)  # x0, x1, y0, y1 of the working crop
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 / sRGB primaries
+
+
+@dataclass(frozen=True)
+class CropBox:
+    """A square of `size` full-frame pixels with its top-left corner at (x0, y0); it may reach
+    outside the photo (that part is padded). `resolution` is the working crop's side."""
+
+    x0: int
+    y0: int
+    size: int
+    resolution: int
+
+    @property
+    def scale(self) -> float:
+        """Full-frame pixels per crop pixel."""
+        return self.size / self.resolution
+
+
+def person_crop_box(mask: np.ndarray, resolution: int, margin: float = 0.08, path=None) -> CropBox:
+    """The square around the person: the mask's bounding box (mask > 0.5), its longer side
+    grown by `margin` on each side, centred on the box. mask: (H, W) in [0, 1]."""
+    rows = np.flatnonzero((mask > 0.5).any(axis=1))
+    cols = np.flatnonzero((mask > 0.5).any(axis=0))
+    if rows.size == 0:
+        raise InputError("no person found: the mask is empty", path=path,
+                         fix="check --mask, or use a photo where the person is clearly visible")
+    height, width = rows[-1] + 1 - rows[0], cols[-1] + 1 - cols[0]
+    size = int(np.ceil(max(height, width) * (1.0 + 2.0 * margin)))
+    size = max(size, 8)
+    cy, cx = (rows[0] + rows[-1] + 1) / 2.0, (cols[0] + cols[-1] + 1) / 2.0
+    return CropBox(int(round(cx - size / 2.0)), int(round(cy - size / 2.0)), size, resolution)
+
+
+def crop_square(image: np.ndarray, box: CropBox) -> np.ndarray:
+    """(H, W[, C]) float32 full frame -> (R, R[, C]) crop, zero outside the photo; area
+    averaging when shrinking, bilinear when enlarging."""
+    height, width = image.shape[:2]
+    region = np.zeros((box.size, box.size) + image.shape[2:], np.float32)
+    ys, xs = _overlap(box.y0, box.size, height), _overlap(box.x0, box.size, width)
+    if ys and xs:
+        region[ys[0] - box.y0:ys[1] - box.y0, xs[0] - box.x0:xs[1] - box.x0] = image[ys[0]:ys[1], xs[0]:xs[1]]
+    interpolation = cv2.INTER_AREA if box.size >= box.resolution else cv2.INTER_LINEAR
+    out = cv2.resize(region, (box.resolution, box.resolution), interpolation=interpolation)
+    return out.reshape((box.resolution, box.resolution) + image.shape[2:])
+
+
+def paste_back(crop: np.ndarray, box: CropBox, height: int, width: int) -> np.ndarray:
+    """(R, R[, C]) crop -> (height, width[, C]) full frame, zero outside the box. Bilinear."""
+    full = np.zeros((height, width) + crop.shape[2:], np.float32)
+    ys, xs = _overlap(box.y0, box.size, height), _overlap(box.x0, box.size, width)
+    if not (ys and xs):
+        return full
+    # Map each visible full-frame pixel centre into crop pixel coordinates (inverse warp).
+    s = box.resolution / box.size
+    matrix = np.array([[s, 0.0, (xs[0] - box.x0 + 0.5) * s - 0.5],
+                       [0.0, s, (ys[0] - box.y0 + 0.5) * s - 0.5]])
+    visible = cv2.warpAffine(crop.astype(np.float32), matrix, (xs[1] - xs[0], ys[1] - ys[0]),
+                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    full[ys[0]:ys[1], xs[0]:xs[1]] = visible.reshape(visible.shape[:2] + crop.shape[2:])
+    return full
+
+
+def _overlap(start: int, size: int, limit: int):
+    lo, hi = max(start, 0), min(start + size, limit)
+    return (lo, hi) if hi > lo else None
+
+
+def relight(albedo: np.ndarray, shading: np.ndarray) -> np.ndarray:
+    """relit = albedo * shading, element-wise, linear light (DESIGN.md)."""
+    return (albedo * shading).astype(np.float32)
+
+
+def display_exposure(relit: np.ndarray, mask: np.ndarray, target: float) -> float:
+    """The factor that maps the 95th percentile of the person's luminance to `target`, for LDR
+    outputs (an HDR environment gives radiance in arbitrary units; a PNG clips at 1). 1.0 for a
+    black person."""
+    luminance = relit[mask > 0.5] @ LUMINANCE
+    if luminance.size == 0:
+        return 1.0
+    p95 = float(np.percentile(luminance, 95.0))
+    return target / p95 if p95 > 0 else 1.0
+
+
+def parse_colour(text: str) -> np.ndarray:
+    """'#RGB' or '#RRGGBB' (sRGB) -> (3,) float32 linear."""
+    digits = text.lstrip("#")
+    if len(digits) == 3:
+        digits = "".join(c * 2 for c in digits)
+    values = np.array([int(digits[i:i + 2], 16) for i in (0, 2, 4)], np.float32) / 255.0
+    return srgb_to_linear(values)
+
+
+def composite(relit: np.ndarray, mask: np.ndarray, background: str, *, photo: np.ndarray | None = None,
+              env_view: np.ndarray | None = None):
+    """Place the relit person over a background. relit, photo, env_view: (H, W, 3) float32
+    linear; mask: (H, W) straight alpha. Returns (rgb, alpha); alpha is None except for
+    'transparent'. background: keep | env | transparent | '#RRGGBB'."""
+    alpha = mask[..., None].astype(np.float32)
+    if background == "transparent":
+        return (relit * (alpha > 0)).astype(np.float32), mask.astype(np.float32)
+    if background == "keep":
+        behind = photo
+    elif background == "env":
+        behind = env_view
+    else:
+        behind = np.broadcast_to(parse_colour(background), relit.shape)
+    if behind is None:
+        raise ValueError(f"background {background!r} needs its image")
+    return (relit * alpha + behind * (1.0 - alpha)).astype(np.float32), None
+
+
+def to_display(image: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """Linear -> sRGB-encoded [0, 1] float32 for previews."""
+    return linear_to_srgb(np.clip(image * scale, 0.0, 1.0))
+
+
+def preview_sheet(tiles: list[tuple[str, np.ndarray]], height: int = 256) -> np.ndarray:
+    """One row of display-ready tiles (sRGB-encoded [0, 1], (h, w, 3) or (h, w)), each resized
+    to `height` rows, titled. Returns (height + 24, total width, 3) float32 sRGB-encoded."""
+    columns = []
+    for title, tile in tiles:
+        if tile.ndim == 2:
+            tile = np.repeat(tile[..., None], 3, axis=2)
+        width = max(1, int(round(tile.shape[1] * height / tile.shape[0])))
+        resized = cv2.resize(tile.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        banner = np.full((24, width, 3), 255, np.uint8)  # OpenCV draws text on 8-bit images only
+        cv2.putText(banner, title, (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        columns.append(np.concatenate([banner / np.float32(255), np.clip(resized, 0.0, 1.0)], axis=0))
+        columns.append(np.ones((height + 24, 4, 3), np.float32))
+    return np.concatenate(columns[:-1], axis=1)

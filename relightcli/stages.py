@@ -1,0 +1,207 @@
+"""The stages of one relighting run, each a function of (frame, options, models).
+
+`Frame` carries what earlier stages produced. Working-crop arrays are (R, R, ...) float32 in
+the crop camera of relightcli.compose (world square [-1, 1]^2, orthographic along -Z);
+full-frame arrays are (H, W, ...) float32. Networks see the crop as the photo shows it
+(background included, as in training); their outputs are masked afterwards.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from relightcli import compose
+from relightcli.errors import MissingDependencyError
+from relightcli.io.envmap import environment_view
+
+
+@dataclass
+class Frame:
+    image: np.ndarray  # (H, W, 3) linear photo
+    mask: np.ndarray | None  # (H, W) person alpha; None until the mask stage when not given
+    env: np.ndarray  # (h, 2h, 3) target environment, linear radiance
+    box: compose.CropBox | None = None
+    crop: np.ndarray | None = None  # (R, R, 3)
+    crop_mask: np.ndarray | None = None  # (R, R)
+    normal: np.ndarray | None = None  # (R, R, 3), zero outside the person
+    geometry: object | None = None  # relightcli.nets.geometry.GeometryMaps
+    ao: np.ndarray | None = None  # (R, R)
+    albedo: np.ndarray | None = None  # (R, R, 3)
+    light: np.ndarray | None = None  # (16, 32, 3) estimated input lighting
+    mesh: object | None = None  # trimesh.Trimesh in the crop camera frame
+    coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
+    shading: np.ndarray | None = None  # (R, R, 3) final shading under env
+    relit: np.ndarray | None = None  # (H, W, 3) full frame, linear, person only
+    notes: dict = field(default_factory=dict)  # stage -> facts for the report
+
+
+class Models:
+    """Network sessions, created on first use (only the stages a plan runs load theirs) and
+    kept for every later item of the batch."""
+
+    def __init__(self, threads: int):
+        self.threads, self._sessions = threads, {}
+
+    def get(self, family: str):
+        if family not in self._sessions:
+            from relightcli.nets.delight import DelightNet
+            from relightcli.nets.geometry import AONet, GeometryNet
+            from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
+
+            classes = {"geometry": GeometryNet, "ao": AONet, "delight": DelightNet,
+                       "body_refine": BodyRefineNet, "face_refine": FaceRefineNet}
+            self._sessions[family] = classes[family](threads=self.threads)
+        return self._sessions[family]
+
+
+def stage_mask(frame: Frame, options, models: Models) -> None:
+    """Predict the person mask when the input brought none: the geometry net's mask head on the
+    whole photo, letterboxed into a square at the working resolution."""
+    if frame.mask is not None:
+        return
+    height, width = frame.image.shape[:2]
+    side = max(height, width)
+    box = compose.CropBox((width - side) // 2, (height - side) // 2, side, options.resolution)
+    maps = models.get("geometry").predict(compose.crop_square(frame.image, box))
+    frame.mask = np.clip(compose.paste_back(maps.mask, box, height, width), 0.0, 1.0)
+    frame.notes["mask"] = {"source": "mask net"}
+
+
+def stage_crop(frame: Frame, options, models: Models) -> None:
+    frame.box = compose.person_crop_box(frame.mask, options.resolution)
+    frame.crop = compose.crop_square(frame.image, frame.box)
+    frame.crop_mask = np.clip(compose.crop_square(frame.mask, frame.box), 0.0, 1.0)
+    frame.notes["crop"] = {"box": [frame.box.x0, frame.box.y0, frame.box.size], "resolution": options.resolution}
+
+
+def stage_geometry(frame: Frame, options, models: Models) -> None:
+    frame.geometry = models.get("geometry").predict(frame.crop)
+    frame.normal = frame.geometry.front_normal * (frame.crop_mask[..., None] > 0.5)
+
+
+def stage_ao(frame: Frame, options, models: Models) -> None:
+    frame.ao = models.get("ao").predict(frame.crop)
+
+
+def stage_delight(frame: Frame, options, models: Models) -> None:
+    result = models.get("delight").predict(frame.crop, frame.normal)
+    frame.albedo = result.albedo * frame.crop_mask[..., None]
+    frame.light = result.light
+
+
+def stage_sh_shading(frame: Frame, options, models: Models) -> None:
+    """RH / SFHR-style baselines: SH-9 or SH-25 irradiance of the target environment at the
+    predicted normals (no visibility)."""
+    from relightcli.render.sh import project_sh, sh_irradiance_shading
+
+    order = 2 if options.method == "sh9" else 4
+    coefficients = project_sh(frame.env, order)
+    shading = sh_irradiance_shading(coefficients, frame.normal)
+    frame.shading = np.maximum(shading, 0.0) * frame.crop_mask[..., None]
+
+
+def stage_compose(frame: Frame, options, models: Models) -> None:
+    """relit = albedo * shading in the crop, pasted back into the full frame."""
+    height, width = frame.image.shape[:2]
+    frame.relit = compose.paste_back(compose.relight(frame.albedo, frame.shading), frame.box, height, width)
+
+
+def not_built(stage: str):
+    def run(frame: Frame, options, models: Models) -> None:
+        raise MissingDependencyError(
+            f"the '{stage}' stage is not in this build yet",
+            fix="use --method sh9 or sh25, or outputs that do not need it (see `relight --help`)",
+        )
+
+    return run
+
+
+STAGES = {
+    "mask": stage_mask,
+    "crop": stage_crop,
+    "geometry": stage_geometry,
+    "ao": stage_ao,
+    "delight": stage_delight,
+    "reconstruct": not_built("reconstruct"),
+    "face": not_built("face"),
+    "raytrace": not_built("raytrace"),
+    "sh_shading": stage_sh_shading,
+    "refine": not_built("refine"),
+    "compose": stage_compose,
+}
+
+
+# --- turning a frame into output layers ---------------------------------------------------
+
+def layer_image(name: str, frame: Frame, options, input_photo_linear: np.ndarray | None = None,
+                hdr: bool = False):
+    """(array, alpha, srgb) for an image layer, full frame. `hdr`: the file keeps linear HDR
+    values (EXR/HDR), so no display exposure is applied."""
+    height, width = frame.image.shape[:2]
+    full = lambda crop: compose.paste_back(crop, frame.box, height, width)  # noqa: E731
+    if name == "mask":
+        return frame.mask, None, False
+    if name == "albedo":
+        return full(frame.albedo), None, True
+    if name == "normal":
+        return full((frame.normal + 1.0) * 0.5 * (frame.crop_mask[..., None] > 0.5)), None, False
+    if name == "ao":
+        return full(frame.ao * frame.crop_mask), None, False
+    if name == "shading":
+        return full(frame.shading), None, True
+    if name == "relit":
+        return relit_image(frame, options, hdr)
+    raise ValueError(f"{name} is not an image layer")
+
+
+def relit_image(frame: Frame, options, hdr: bool):
+    """The relit person over the requested background. For LDR files the person is exposed so
+    its 95th-percentile luminance matches the input photo's person (background keep) or 0.8
+    (other backgrounds; the environment view gets the same factor, so they stay consistent)."""
+    mask = frame.mask
+    scale = 1.0
+    if not hdr:
+        target = 0.8
+        if options.background == "keep":
+            reference = float(np.percentile(frame.image[mask > 0.5] @ compose.LUMINANCE, 95.0)) if (mask > 0.5).any() else 0.8
+            target = reference if reference > 0 else 0.8
+        scale = compose.display_exposure(frame.relit, mask, target)
+    env_view = None
+    if options.background == "env":
+        env_view = _background_view(frame, options)
+    rgb, alpha = compose.composite(frame.relit * np.float32(scale), mask, options.background,
+                                   photo=frame.image, env_view=None if env_view is None else env_view * np.float32(scale))
+    frame.notes["relit"] = {"display_exposure": scale}
+    return rgb, alpha, True
+
+
+def _background_view(frame: Frame, options) -> np.ndarray:
+    """The environment seen by a 60-degree camera, rendered at most 1024 wide (the map has no
+    more detail than that) and resized to the photo."""
+    import cv2
+
+    height, width = frame.image.shape[:2]
+    w = min(width, 1024)
+    h = max(1, round(height * w / width))
+    view = environment_view(frame.env, width=w, height=h, fov_deg=60.0)
+    if (h, w) != (height, width):
+        view = cv2.resize(view, (width, height), interpolation=cv2.INTER_LINEAR)
+    return view
+
+
+def preview_tiles(frame: Frame, options) -> list:
+    """Input, albedo, normal, shading, relit and the environment, display-ready."""
+    crop_relit = compose.crop_square(frame.relit, frame.box)
+    shading_scale = compose.display_exposure(frame.shading, frame.crop_mask, 0.8)
+    relit_scale = compose.display_exposure(crop_relit, frame.crop_mask, 0.8)
+    env_scale = 0.8 / max(float(np.percentile(frame.env @ compose.LUMINANCE, 99.0)), 1e-12)
+    return [
+        ("input", compose.to_display(frame.crop)),
+        ("albedo", compose.to_display(frame.albedo)),
+        ("normal", (frame.normal + 1.0) * 0.5 * (frame.crop_mask[..., None] > 0.5)),
+        ("shading", compose.to_display(frame.shading, shading_scale)),
+        ("relit", compose.to_display(crop_relit, relit_scale)),
+        ("environment", compose.to_display(frame.env, env_scale)),
+    ]

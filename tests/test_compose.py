@@ -1,0 +1,117 @@
+"""Crop / paste-back alignment, relit = albedo * shading, backgrounds, preview."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from relightcli.compose import (
+    CropBox,
+    composite,
+    crop_square,
+    display_exposure,
+    parse_colour,
+    paste_back,
+    person_crop_box,
+    preview_sheet,
+    relight,
+)
+from relightcli.errors import InputError
+
+
+def ramp(height, width):
+    """Value = the pixel-centre x coordinate in full-frame pixels."""
+    x = np.arange(width, dtype=np.float32) + 0.5
+    return np.broadcast_to(x, (height, width)).copy()
+
+
+def test_crop_box_is_square_and_holds_the_person_with_margin():
+    mask = np.zeros((300, 200), np.float32)
+    mask[50:250, 80:120] = 1.0  # 200 tall, 40 wide
+    box = person_crop_box(mask, 128, margin=0.1)
+    assert box.size == 240
+    assert box.y0 == 30 and box.y0 + box.size == 270  # centred vertically
+    assert box.x0 + box.size / 2 == pytest.approx(100, abs=0.5)
+
+
+def test_crop_box_of_empty_mask_is_input_error():
+    with pytest.raises(InputError, match="empty"):
+        person_crop_box(np.zeros((10, 10), np.float32), 64, path="p.png")
+
+
+def test_crop_at_same_size_is_exact():
+    image = np.random.default_rng(0).random((50, 60, 3)).astype(np.float32)
+    box = CropBox(5, 3, 40, 40)
+    np.testing.assert_array_equal(crop_square(image, box), image[3:43, 5:45])
+
+
+def test_crop_downscale_keeps_pixel_centres():
+    # Shrinking by 2: crop pixel j covers full pixels x0 + 2j, x0 + 2j + 1; the ramp's average is
+    # the centre of that footprint: x0 + (j + 0.5) * 2.
+    image = ramp(80, 80)
+    box = CropBox(10, 10, 64, 32)
+    crop = crop_square(image, box)
+    expected = 10 + (np.arange(32) + 0.5) * 2
+    np.testing.assert_allclose(crop[5], expected, atol=1e-4)
+
+
+def test_paste_back_inverts_crop_on_smooth_content():
+    image = ramp(100, 90)[..., None].repeat(3, axis=2)
+    box = CropBox(7, 11, 60, 30)
+    back = paste_back(crop_square(image, box), box, 100, 90)
+    inner = (slice(11 + 2, 71 - 2), slice(7 + 2, 67 - 2))  # away from the box edge
+    np.testing.assert_allclose(back[inner], image[inner], atol=1e-3)
+    assert back[0:11].max() == 0 and back[:, 0:7].max() == 0  # nothing outside the box
+
+
+def test_box_reaching_outside_the_photo_pads_with_zero():
+    image = np.ones((20, 20), np.float32)
+    box = CropBox(-10, -10, 20, 20)
+    crop = crop_square(image, box)
+    assert crop[:10, :10].max() == 0 and crop[10:, 10:].min() == 1
+    back = paste_back(crop, box, 20, 20)
+    assert back.shape == (20, 20)
+    np.testing.assert_array_equal(back[:10, :10], 1.0)
+
+
+def test_relit_is_albedo_times_shading():
+    albedo = np.full((2, 2, 3), 0.5, np.float32)
+    shading = np.array([0.0, 1.0, 40.0], np.float32) * np.ones((2, 2, 3), np.float32)
+    np.testing.assert_array_equal(relight(albedo, shading)[0, 0], [0.0, 0.5, 20.0])
+
+
+def test_composite_keep_uses_alpha():
+    relit = np.full((1, 3, 3), 2.0, np.float32)
+    photo = np.full((1, 3, 3), 0.25, np.float32)
+    mask = np.array([[0.0, 0.5, 1.0]], np.float32)
+    rgb, alpha = composite(relit, mask, "keep", photo=photo)
+    assert alpha is None
+    np.testing.assert_allclose(rgb[0, :, 0], [0.25, 1.125, 2.0])
+
+
+def test_composite_transparent_gives_straight_alpha():
+    relit = np.full((1, 2, 3), 0.7, np.float32)
+    mask = np.array([[0.0, 0.4]], np.float32)
+    rgb, alpha = composite(relit, mask, "transparent")
+    np.testing.assert_array_equal(alpha, mask)
+    np.testing.assert_allclose(rgb[0, 1], 0.7)  # straight, not premultiplied
+
+
+@pytest.mark.parametrize("text, linear", [("#fff", 1.0), ("#000000", 0.0), ("#808080", 0.21586)])
+def test_parse_colour(text, linear):
+    np.testing.assert_allclose(parse_colour(text), linear, atol=1e-4)
+
+
+def test_display_exposure_maps_p95_to_target():
+    relit = np.linspace(0, 100, 1000, dtype=np.float32)[:, None, None].repeat(3, axis=2)
+    mask = np.ones((1000, 1), np.float32)
+    factor = display_exposure(relit, mask, 0.8)
+    assert factor * np.percentile(relit[:, 0, 0], 95) == pytest.approx(0.8, rel=1e-4)
+    assert display_exposure(np.zeros_like(relit), mask, 0.8) == 1.0
+
+
+def test_preview_sheet_shape():
+    tiles = [("input", np.zeros((100, 50, 3))), ("ao", np.ones((40, 40)))]
+    sheet = preview_sheet(tiles, height=64)
+    assert sheet.shape == (64 + 24, 32 + 4 + 64, 3)
+    assert 0.0 <= sheet.min() and sheet.max() <= 1.0

@@ -1,0 +1,114 @@
+"""The plan (what runs, what is skipped and why) and the stages end to end with stand-in
+networks whose outputs are known, so results can be checked analytically."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from relightcli.batch import ItemReport
+from relightcli.nets.delight import DelightResult
+from relightcli.nets.geometry import GeometryMaps
+from relightcli.pipeline import RelightOptions, plan_stages, run_stages
+
+
+def plan(outputs, method="raytrace", has_alpha=True):
+    return plan_stages(RelightOptions(outputs=tuple(outputs), method=method), has_alpha=has_alpha)
+
+
+def test_mask_only_runs_no_network_when_alpha_given():
+    p = plan(["mask"], has_alpha=True)
+    assert p.run == ["mask"]
+    assert "mask_net" in p.skipped and "geometry" in p.skipped
+
+
+def test_mask_net_is_not_skipped_without_alpha():
+    assert "mask_net" not in plan(["mask"], has_alpha=False).skipped
+
+
+def test_full_paper_method_runs_every_stage_but_sh():
+    p = plan(["relit"])
+    assert p.run == ["mask", "crop", "geometry", "ao", "delight", "reconstruct", "face", "raytrace", "refine", "compose"]
+    assert "sh_shading" in p.skipped
+
+
+@pytest.mark.parametrize("method", ["sh9", "sh25"])
+def test_sh_methods_skip_ray_tracing_and_refinement(method):
+    p = plan(["relit"], method=method)
+    assert "raytrace" not in p.run and "reconstruct" not in p.run and "refine" not in p.run
+    assert "spherical harmonics" in p.skipped["raytrace"]
+
+
+def test_norefine_skips_refinement_and_face():
+    p = plan(["relit"], method="raytrace-norefine")
+    assert "refine" not in p.run and "face" not in p.run and "ao" not in p.run
+    assert p.skipped["refine"] == "--method raytrace-norefine"
+
+
+def test_normals_alone_need_only_the_geometry_net():
+    assert plan(["normal"]).run == ["mask", "crop", "geometry"]
+
+
+def test_mesh_needs_reconstruction_but_no_lighting():
+    p = plan(["mesh"])
+    assert "reconstruct" in p.run and "raytrace" not in p.run and "delight" not in p.run
+
+
+class StandInModels:
+    """Networks with known outputs: normals facing the camera, a disc mask, constant AO and
+    albedo. Records which families were asked for."""
+
+    def __init__(self, albedo=0.5):
+        self.albedo, self.used = albedo, []
+
+    def get(self, family):
+        self.used.append(family)
+        return self
+
+    def predict(self, image, normal=None):
+        size = image.shape[0]
+        if normal is not None:  # delight
+            return DelightResult(np.full(image.shape, self.albedo, np.float32), np.zeros((16, 32, 3), np.float32))
+        y, x = np.mgrid[:size, :size]
+        disc = (((x - size / 2) ** 2 + (y - size / 2) ** 2) < (0.3 * size) ** 2).astype(np.float32)
+        normals = np.zeros(image.shape, np.float32)
+        normals[..., 2] = 1.0
+        depth = np.zeros(image.shape[:2], np.float32)
+        return GeometryMaps(normals, -normals, depth, depth - 0.1, disc)
+
+
+def photo_with_person(height=90, width=70):
+    image = np.full((height, width, 3), 0.3, np.float32)
+    mask = np.zeros((height, width), np.float32)
+    mask[20:80, 25:50] = 1.0
+    return image, mask
+
+
+@pytest.mark.parametrize("method", ["sh9", "sh25"])
+def test_sh_relit_under_constant_light_is_albedo_times_light(method):
+    # White furnace through the whole pipeline: crop, SH shading at +Z normals, compose, paste.
+    image, mask = photo_with_person()
+    env = np.full((16, 32, 3), [2.0, 1.0, 0.5], np.float32)
+    options = RelightOptions(outputs=("relit",), method=method, resolution=32)
+    models = StandInModels(albedo=0.5)
+    frame, _ = run_stages(image, mask, env, options, ItemReport("x"), models)
+    inside = mask > 0.5
+    inner = np.zeros_like(inside)
+    inner[24:76, 29:46] = True  # away from the crop-resampling edge of the mask
+    np.testing.assert_allclose(frame.relit[inner], np.broadcast_to([1.0, 0.5, 0.25], (inner.sum(), 3)), rtol=2e-3)
+    assert frame.relit[~inside].max() <= 1.0 and np.isfinite(frame.relit).all()
+    assert models.used.count("geometry") == 1 and "ao" not in models.used  # no AO net for SH
+
+
+def test_mask_net_runs_only_without_alpha():
+    image, mask = photo_with_person()
+    env = np.ones((8, 16, 3), np.float32)
+    options = RelightOptions(outputs=("normal",), method="sh9", resolution=32)
+    with_alpha = StandInModels()
+    run_stages(image, mask, env, options, ItemReport("x"), with_alpha)
+    without_alpha = StandInModels()
+    frame, _ = run_stages(image, None, env, options, ItemReport("x"), without_alpha)
+    assert with_alpha.used == ["geometry"]
+    assert without_alpha.used == ["geometry", "geometry"]  # mask on the whole photo, then the crop
+    assert frame.notes["mask"]["source"] == "mask net"
+    assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
