@@ -11,7 +11,8 @@ Format (version 1)::
                        "config": {...}, "training_data": {...}, "metrics": {...}}}}
 
 `file` is relative to the models directory. Shapes use "N" for batch and "H"/"W" for dynamic
-spatial sizes; integers are fixed.
+spatial sizes; integers are fixed. Non-network files the runtime needs (the face morphable model)
+are entries with "kind": "data" and only "file", "sha256", "description" and "license".
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from relightcli.errors import MissingDependencyError
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 MODELS_DIR_ENV = "RELIGHT_MODELS_DIR"
-REQUIRED_KEYS = ("file", "sha256", "inputs", "outputs", "multiple")
+REQUIRED_KEYS = {"onnx": ("file", "sha256", "inputs", "outputs", "multiple"), "data": ("file", "sha256")}
 EXPORT_FIX = "re-export the models (python -m export.onnx_export) or reinstall them into the models directory"
 
 
@@ -58,6 +59,8 @@ class ModelEntry:
     config: dict = field(default_factory=dict)
     training_data: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
+    kind: str = "onnx"  # "onnx" for networks, "data" for other files the runtime reads
+    description: str = ""
 
 
 @dataclass(frozen=True)
@@ -109,13 +112,16 @@ def load_manifest(directory: str | Path | None = None) -> dict[str, ModelEntry]:
 
 
 def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) -> ModelEntry:
-    missing = [k for k in REQUIRED_KEYS if not isinstance(spec, dict) or k not in spec]
+    kind = spec.get("kind", "onnx") if isinstance(spec, dict) else "onnx"
+    if kind not in REQUIRED_KEYS:
+        raise MissingDependencyError(f"model {name!r} has unknown kind {kind!r}", path=manifest_path, fix=EXPORT_FIX)
+    missing = [k for k in REQUIRED_KEYS[kind] if not isinstance(spec, dict) or k not in spec]
     if missing:
         raise MissingDependencyError(f"model {name!r} lacks {', '.join(missing)}", path=manifest_path, fix=EXPORT_FIX)
     try:
-        inputs = tuple(_parse_tensor(t) for t in spec["inputs"])
-        outputs = tuple(_parse_tensor(t) for t in spec["outputs"])
-        multiple = int(spec["multiple"])
+        inputs = tuple(_parse_tensor(t) for t in spec.get("inputs", ()))
+        outputs = tuple(_parse_tensor(t) for t in spec.get("outputs", ()))
+        multiple = int(spec.get("multiple", 1))
     except (KeyError, TypeError, ValueError) as exc:
         raise MissingDependencyError(f"model {name!r} has a malformed I/O contract: {exc}",
                                      path=manifest_path, fix=EXPORT_FIX) from exc
@@ -131,6 +137,8 @@ def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) ->
         config=spec.get("config", {}),
         training_data=spec.get("training_data", {}),
         metrics=spec.get("metrics", {}),
+        kind=kind,
+        description=spec.get("description", ""),
     )
 
 
@@ -146,6 +154,18 @@ def model_entry(name: str, directory: str | Path | None = None) -> ModelEntry:
         raise MissingDependencyError(f"model {name!r} is not in the manifest (has: {', '.join(sorted(entries)) or 'none'})",
                                      path=directory / MANIFEST_NAME, fix=EXPORT_FIX)
     return entries[name]
+
+
+def verified_file(name: str, directory: str | Path | None = None) -> Path:
+    """The path of manifest entry `name` after checking it exists and matches its sha256;
+    MissingDependencyError naming the file and the fix otherwise."""
+    entry = model_entry(name, directory)
+    if not entry.path.is_file():
+        raise MissingDependencyError(f"{name} file not found", path=entry.path, fix=EXPORT_FIX)
+    if sha256_file(entry.path) != entry.sha256:
+        raise MissingDependencyError(f"{name} file does not match its sha256 in the manifest (corrupt or replaced)",
+                                     path=entry.path, fix=EXPORT_FIX)
+    return entry.path
 
 
 def list_models(directory: str | Path | None = None, verify: bool = False) -> list[ModelStatus]:
