@@ -1,0 +1,5 @@
+import sys
+
+from export.train.cli import main
+
+sys.exit(main())

@@ -1,0 +1,59 @@
+"""After training: the ONNX export of a trained net into a models directory, with a manifest
+entry that records the training config, a summary of the data card and the validation metrics."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from export.onnx_export import export_onnx, parity, person_like_inputs, update_manifest
+
+PARITY_TOLERANCE = 1e-3  # max |ORT - torch|; the nets' own tests see ~1e-6
+MAX_LIST = 8  # longer lists in the data card are summarised by their length
+
+
+def _json_safe(value):
+    """Non-finite floats (an infinite PSNR of a perfect prediction) become None: strict JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def card_summary(card: dict) -> dict:
+    """The data card with long lists replaced by {"count": n} (HDRI names, pose files...)."""
+    def shorten(value):
+        if isinstance(value, dict):
+            return {k: shorten(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)) and len(value) > MAX_LIST:
+            return {"count": len(value)}
+        return value
+    return shorten(dict(card))
+
+
+def export_trained(trainer, models_dir: str | Path, card: dict, run: dict) -> dict:
+    """Export `trainer.net` to `<models_dir>/<family>.onnx`, check ONNX Runtime against torch,
+    and insert its entry in `<models_dir>/manifest.json`. `run` is `Trainer.run`'s result.
+    Returns the entry."""
+    config = trainer.config
+    net = trainer.net.eval()
+    multiple = net.io_contract().multiple
+    size = max(multiple, int(math.ceil(config.export_size / multiple)) * multiple)
+    path = Path(models_dir) / f"{config.net}.onnx"
+    extra = _json_safe({
+        "training": {"config": config.to_dict(), "step": run["step"], "elapsed_s": round(run["elapsed_s"], 1),
+                     "stopped_by": run["stopped_by"], "run_dir": str(trainer.out)},
+        "training_data": card_summary(card),
+        "metrics": {"split": "val", **run["metrics"]},
+    })
+    entry = export_onnx(net, path, height=size, width=size, extra=extra)
+    feeds = person_like_inputs(net.io_contract(), size, size, seed=1)
+    worst = max(parity(net, path, feeds).values())
+    if not worst <= PARITY_TOLERANCE:
+        raise RuntimeError(f"{path}: ONNX Runtime differs from torch by {worst:.3g} (> {PARITY_TOLERANCE})")
+    entry["parity_max_abs"] = worst
+    update_manifest(models_dir, config.net, entry)
+    return entry

@@ -1,0 +1,300 @@
+"""One `Task` per net family: the data adapter (dataset sample -> the net's inputs and
+targets), the paper's loss for that net, its discriminator (if any) and its validation metrics.
+
+An *example* is a dict of float32 CHW numpy arrays for one training pair; a *batch* is the
+same keys stacked into NCHW torch tensors. `Task.example` returns None for a sample that
+cannot make one (the face net on a sample without a visible face).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from export.nets import build_net
+from export.nets.blocks import encode_log_shading
+from export.nets.discriminators import (LSGAN_CONFIGS, PATCHGAN_CONFIGS, LSGANConfig, LSGANDiscriminator,
+                                        MultiscalePatchGAN)
+from export.train import data
+from export.train.config import ConfigError, TrainConfig
+from export.train.losses import (angular_loss, fft_l1, gradient_l1, light_loss, masked_l1, perceptual,
+                                 pyramid)
+from relightcli import metrics
+from relightcli.io.images import linear_to_srgb
+from relightcli.nets.refine import shading_scale
+
+
+def chw(image: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, C) -> (C, H, W) float32."""
+    image = np.asarray(image, dtype=np.float32)
+    return np.ascontiguousarray(image[None] if image.ndim == 2 else image.transpose(2, 0, 1))
+
+
+def hwc(image: np.ndarray) -> np.ndarray:
+    """(C, H, W) -> (H, W, C); a single channel comes back as (H, W)."""
+    return image[0] if image.shape[0] == 1 else image.transpose(1, 2, 0)
+
+
+def collate(examples: list[dict]) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(np.stack([e[k] for e in examples])) for k in examples[0]}
+
+
+def protocol_encode(x: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """The evaluation protocol's encoding (DESIGN.md): divide by `scale`, clip to [0, 1], sRGB."""
+    return linear_to_srgb(np.clip(x / np.float32(scale), 0.0, 1.0))
+
+
+def mean_angle_deg(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    """Mean angle in degrees between (H, W, 3) normal maps over mask > 0.5 (pred renormalised)."""
+    inside = mask > 0.5
+    p = pred[inside] / np.maximum(np.linalg.norm(pred[inside], axis=-1, keepdims=True), 1e-8)
+    t = target[inside] / np.maximum(np.linalg.norm(target[inside], axis=-1, keepdims=True), 1e-8)
+    cos = np.clip(np.sum(p * t, axis=-1), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)).mean())
+
+
+def masked_mae(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    return float(np.abs(pred - target)[mask > 0.5].mean())
+
+
+class Task:
+    """Base: subclasses set `family`, `input_keys` and implement example / losses / metrics."""
+
+    family = ""
+    input_keys: tuple[str, ...] = ()
+
+    def __init__(self, config: TrainConfig):
+        self.config = config
+        self.w = config.loss
+
+    def build_net(self) -> nn.Module:
+        return build_net(self.family, self.config.size)
+
+    def build_discriminator(self) -> nn.Module | None:
+        return None
+
+    def example(self, sample: dict, rng: np.random.Generator) -> dict | None:
+        raise NotImplementedError
+
+    def forward(self, net: nn.Module, batch: dict) -> dict[str, torch.Tensor]:
+        out = net(*(batch[k] for k in self.input_keys))
+        out = (out,) if isinstance(out, torch.Tensor) else out
+        return dict(zip(net.output_names, out))
+
+    def losses(self, out: dict, batch: dict) -> dict[str, torch.Tensor]:
+        """Weighted reconstruction terms (their sum is the loss without the adversarial term)."""
+        raise NotImplementedError
+
+    def discriminator_pair(self, out: dict, batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(real, fake) discriminator inputs; only for the adversarial tasks."""
+        raise NotImplementedError
+
+    def metrics(self, out: dict[str, np.ndarray], example: dict[str, np.ndarray]) -> dict[str, float]:
+        """Validation metrics of one example: `out` maps output names to (C, H, W) arrays."""
+        raise NotImplementedError
+
+
+class GeometryTask(Task):
+    """image -> front/back normals, front/back depth (translation-invariant), mask.
+    Loss (paper: 5 L1 + perceptual) on each map, plus an angular term on the normals."""
+
+    family = "geometry"
+    input_keys = ("image",)
+
+    def example(self, sample, rng):
+        front, back = data.relative_depths(sample)
+        return {"image": chw(sample["input"]), "front_normal": chw(sample["normal"]),
+                "back_normal": chw(sample["back_normal"]), "front_depth": chw(front),
+                "back_depth": chw(back), "mask": chw(sample["mask"])}
+
+    def losses(self, out, batch):
+        m = batch["mask"]
+        terms = {}
+        for key in ("front_normal", "back_normal"):
+            terms[f"{key}_l1"] = self.w["l1"] * masked_l1(out[key], batch[key], m)
+            terms[f"{key}_angular"] = self.w["angular"] * angular_loss(out[key], batch[key], m)
+            terms[f"{key}_perceptual"] = self.w["perceptual"] * perceptual(
+                (out[key] + 1) / 2 * m, (batch[key] + 1) / 2 * m, m)
+        for key in ("front_depth", "back_depth"):
+            terms[f"{key}_l1"] = self.w["l1"] * masked_l1(out[key], batch[key], m)
+            terms[f"{key}_gradient"] = self.w["perceptual"] * gradient_l1(out[key], batch[key], m)
+        terms["mask_l1"] = self.w["l1"] * masked_l1(out["mask"], m)
+        terms["mask_perceptual"] = self.w["perceptual"] * perceptual(out["mask"], m)
+        return terms
+
+    def metrics(self, out, example):
+        mask = example["mask"][0]
+        return {
+            "normal_angle_deg": mean_angle_deg(hwc(out["front_normal"]), hwc(example["front_normal"]), mask),
+            "back_normal_angle_deg": mean_angle_deg(hwc(out["back_normal"]), hwc(example["back_normal"]), mask),
+            "front_depth_mae": masked_mae(out["front_depth"][0], example["front_depth"][0], mask),
+            "back_depth_mae": masked_mae(out["back_depth"][0], example["back_depth"][0], mask),
+            "mask_mae": float(np.abs(out["mask"][0] - mask).mean()),
+        }
+
+
+class AOTask(Task):
+    """image -> AO. Loss (paper: 5 L1 + perceptual) over the person."""
+
+    family = "ao"
+    input_keys = ("image",)
+
+    def example(self, sample, rng):
+        return {"image": chw(sample["input"]), "ao": chw(sample["ao"]), "mask": chw(sample["mask"])}
+
+    def losses(self, out, batch):
+        m = batch["mask"]
+        return {"ao_l1": self.w["l1"] * masked_l1(out["ao"], batch["ao"], m),
+                "ao_perceptual": self.w["perceptual"] * perceptual(out["ao"] * m, batch["ao"] * m, m)}
+
+    def metrics(self, out, example):
+        return {"ao_mae": masked_mae(out["ao"][0], example["ao"][0], example["mask"][0])}
+
+
+class DelightTask(Task):
+    """[image, normal] -> albedo, light. Loss (paper): 500 L1 + 100 perceptual on the albedo
+    over the person, 0.025 solid-angle-weighted log-L2 on the 16x32 light. The normal input
+    is the ground truth during training (the runtime feeds the geometry net's)."""
+
+    family = "delight"
+    input_keys = ("image", "normal")
+
+    def example(self, sample, rng):
+        return {"image": chw(sample["input"]), "normal": chw(sample["normal"]),
+                "albedo": chw(sample["albedo"]), "light": chw(sample["light_a"]), "mask": chw(sample["mask"])}
+
+    def losses(self, out, batch):
+        m = batch["mask"]
+        return {"albedo_l1": self.w["l1"] * masked_l1(out["albedo"], batch["albedo"], m),
+                "albedo_perceptual": self.w["perceptual"] * perceptual(out["albedo"] * m, batch["albedo"] * m, m),
+                "light": self.w["light"] * light_loss(out["light"], batch["light"])}
+
+    def metrics(self, out, example):
+        mask = example["mask"][0]
+        pred = protocol_encode(hwc(out["albedo"]))
+        true = protocol_encode(hwc(example["albedo"]))
+        with torch.no_grad():
+            light = float(light_loss(torch.from_numpy(out["light"][None]), torch.from_numpy(example["light"][None])))
+        return {"albedo_mse": metrics.mse(pred, true, mask), "albedo_psnr": metrics.psnr(pred, true, mask),
+                "albedo_ssim": metrics.ssim(pred, true, mask), "light_log_l2": light}
+
+
+def coarse_body_shading(config: TrainConfig, sample: dict, rng: np.random.Generator) -> np.ndarray:
+    """The coarse shading the body net refines: the stand-in, or a dataset key once the
+    pipeline renders the reconstructed mesh (config `coarse_shading`)."""
+    if config.coarse_shading == "standin":
+        return data.standin_coarse_shading(sample[config.shading_key], sample["ao"], sample["mask"],
+                                           rng, config.standin)
+    if config.coarse_shading not in sample:
+        raise ConfigError(f"config coarse_shading={config.coarse_shading!r} but the dataset samples have no "
+                       f"such array; use \"standin\" or regenerate the data with it")
+    return sample[config.coarse_shading]
+
+
+class GANTask(Task):
+    """Shared by the refinement nets: the discriminator sees [condition, log(1 + shading)]."""
+
+    def discriminator_pair(self, out, batch):
+        condition = self.condition(batch)
+        real = torch.cat([condition, encode_log_shading(batch["shading"])], dim=1)
+        fake = torch.cat([condition, encode_log_shading(out["shading"])], dim=1)
+        return real, fake
+
+    def condition(self, batch: dict) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class BodyRefineTask(GANTask):
+    """[coarse shading, AO] -> shading, all shadings divided by the coarse shading's
+    `shading_scale` as at run time. Loss (paper): 10 sum_k L1 over the 5 output scales +
+    PatchGAN adversarial + 0.001 sum_k L1 of the FFTs."""
+
+    family = "body_refine"
+    input_keys = ("coarse_shading", "ao")
+
+    def build_discriminator(self):
+        return MultiscalePatchGAN(3 + 1 + 3, PATCHGAN_CONFIGS[self.config.size])
+
+    def example(self, sample, rng):
+        coarse = coarse_body_shading(self.config, sample, rng)
+        scale = np.float32(shading_scale(coarse, sample["mask"]))
+        return {"coarse_shading": chw(coarse / scale), "ao": chw(sample["ao"]),
+                "shading": chw(sample[self.config.shading_key] / scale), "mask": chw(sample["mask"])}
+
+    def losses(self, out, batch):
+        names = ["shading"] + [f"shading_s{k}" for k in range(1, 5)]
+        targets, masks = pyramid(batch["shading"], 5), pyramid(batch["mask"], 5)
+        l1 = sum(masked_l1(out[n], t, m) for n, t, m in zip(names, targets, masks))
+        fft = sum(fft_l1(out[n] * m, t * m) for n, t, m in zip(names, targets, masks))
+        return {"shading_l1": self.w["l1"] * l1, "shading_fft": self.w["fft"] * fft}
+
+    def condition(self, batch):
+        return torch.cat([encode_log_shading(batch["coarse_shading"]), batch["ao"]], dim=1)
+
+    def metrics(self, out, example):
+        mask = example["mask"][0]
+        true = hwc(example["shading"])
+        scale = shading_scale(true, mask)  # the evaluation protocol's per-scene constant
+        refined, coarse = hwc(out["shading"]), hwc(example["coarse_shading"])
+        t = protocol_encode(true, scale)
+        r, c = protocol_encode(refined, scale), protocol_encode(coarse, scale)
+        psnr_r, psnr_c = metrics.psnr(r, t, mask), metrics.psnr(c, t, mask)
+        return {"shading_psnr_refined": psnr_r, "shading_psnr_coarse": psnr_c,
+                "shading_psnr_gain": psnr_r - psnr_c, "shading_mse_refined": metrics.mse(r, t, mask),
+                "shading_ssim_refined": metrics.ssim(r, t, mask)}
+
+
+class FaceRefineTask(GANTask):
+    """[face crop of the refined body shading, coarse face shading] -> face shading crop,
+    crops resampled to `face_crop_size`, shadings divided by the body's scale. Loss (paper):
+    5 L1 over the person + LSGAN adversarial."""
+
+    family = "face_refine"
+    input_keys = ("body_shading", "face_shading")
+
+    def build_discriminator(self):
+        widths = LSGAN_CONFIGS[self.config.size].widths
+        size = self.config.face_crop_size
+        if size % 2 ** len(widths):
+            raise ValueError(f"face_crop_size {size} must be a multiple of {2 ** len(widths)}")
+        return LSGANDiscriminator(3 + 3, LSGANConfig(widths=widths, input_size=size))
+
+    def example(self, sample, rng):
+        if not data.has_face(sample):
+            return None
+        shading = sample[self.config.shading_key]
+        body, face = data.standin_face_shadings(shading, sample["mask"], rng, self.config.standin)
+        # The run time divides by the body's scale; the body's refined shading is close to the truth.
+        scale = np.float32(shading_scale(shading, sample["mask"]))
+        cx, cy, side = data.face_square(sample["face_box"], self.config.face_margin)
+        size = self.config.face_crop_size
+
+        def crop(image):
+            return chw(data.crop_resample(image, cx, cy, side, size))
+
+        return {"body_shading": crop(body / scale), "face_shading": crop(face / scale),
+                "shading": crop(shading / scale), "mask": crop(sample["mask"])}
+
+    def losses(self, out, batch):
+        return {"shading_l1": self.w["l1"] * masked_l1(out["shading"], batch["shading"], batch["mask"])}
+
+    def condition(self, batch):
+        return encode_log_shading(batch["face_shading"])
+
+    def metrics(self, out, example):
+        mask = example["mask"][0]
+        true = hwc(example["shading"])
+        scale = shading_scale(true, mask)
+        t = protocol_encode(true, scale)
+        r = protocol_encode(hwc(out["shading"]), scale)
+        c = protocol_encode(hwc(example["face_shading"]), scale)
+        psnr_r, psnr_c = metrics.psnr(r, t, mask), metrics.psnr(c, t, mask)
+        return {"face_psnr_refined": psnr_r, "face_psnr_coarse": psnr_c, "face_psnr_gain": psnr_r - psnr_c}
+
+
+TASKS = {t.family: t for t in (GeometryTask, AOTask, DelightTask, BodyRefineTask, FaceRefineTask)}
+
+
+def make_task(config: TrainConfig) -> Task:
+    return TASKS[config.net](config)
