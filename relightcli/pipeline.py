@@ -220,7 +220,7 @@ def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
     if name == "light":
         write_image(path, frame.light)
     elif name == "mesh":
-        from relightcli.geometry import save_mesh
+        from relightcli.geometry.mesh import save_mesh
 
         save_mesh(frame.mesh, path)
     elif name == "preview":

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from relightcli import compose
-from relightcli.errors import MissingDependencyError
 from relightcli.io.envmap import environment_view
 
 
@@ -42,7 +41,17 @@ class Models:
     kept for every later item of the batch."""
 
     def __init__(self, threads: int):
-        self.threads, self._sessions = threads, {}
+        self.threads, self._sessions, self._lights = threads, {}, {}
+
+    def light(self, env: np.ndarray):
+        """The environment's sampling distribution, built once per map and kept (a batch or a
+        turntable relights many times under the same or the same few maps)."""
+        from relightcli.render.environment import EnvironmentLight
+
+        key = id(env)
+        if key not in self._lights:
+            self._lights = {key: (env, EnvironmentLight(env))}  # keep one: maps are large
+        return self._lights[key][1]
 
     def get(self, family: str):
         if family not in self._sessions:
@@ -102,20 +111,91 @@ def stage_sh_shading(frame: Frame, options, models: Models) -> None:
     frame.shading = np.maximum(shading, 0.0) * frame.crop_mask[..., None]
 
 
+def stage_reconstruct(frame: Frame, options, models: Models) -> None:
+    """Double-sided depth -> watertight mesh in the crop camera frame, then 10 steps of
+    cotangent Laplacian smoothing (the paper's setting)."""
+    from relightcli.geometry.mesh import reconstruct_mesh
+    from relightcli.geometry.smoothing import smooth_mesh
+
+    g = frame.geometry
+    back = np.minimum(g.back_depth, g.front_depth)  # the back never lies in front
+    mesh = reconstruct_mesh(frame.crop_mask, g.front_depth, back, compose.CROP_RECT)
+    frame.mesh = smooth_mesh(mesh)
+    frame.notes["reconstruct"] = {"vertices": int(len(frame.mesh.vertices)), "faces": int(len(frame.mesh.faces))}
+
+
+def stage_raytrace(frame: Frame, options, models: Models) -> None:
+    """Coarse shading of the mesh under the target environment, pixel-aligned with the crop.
+    Mask pixels the mesh does not cover (limbs thinner than two pixels) take the shading of the
+    nearest covered pixel."""
+    from relightcli.render.camera import render_pixel_geometry
+    from relightcli.render.integrator import shade_environment
+    from relightcli.render.scene import Scene
+
+    resolution = options.resolution
+    scene = Scene.from_trimesh(frame.mesh, threads=options.threads)
+    with scene:
+        geometry = render_pixel_geometry(scene, compose.CROP_RECT, (resolution, resolution))
+        spp, target = sampling_effort(options)
+        result = shade_environment(scene, geometry, models.light(frame.env), spp=spp, target_error=target,
+                                   seed=options.seed)
+    frame.coarse_shading = fill_uncovered(result.mean, geometry.mask, frame.crop_mask > 0.5)
+    frame.shading = frame.coarse_shading * frame.crop_mask[..., None]
+    frame.notes["raytrace"] = {
+        "spp_mean": float(result.passes[result.mask].mean()) if result.mask.any() else 0.0,
+        "rays": result.rays, "seconds": round(result.seconds, 4), "strategy": result.strategy,
+        "rel_error": result.median_relative_error(),
+        "mrays_per_s": result.rays / max(result.seconds, 1e-9) / 1e6,
+    }
+
+
+# Default sampling effort: stop each pixel at 2% relative standard error, at most 256 samples.
+DEFAULT_TARGET_ERROR, DEFAULT_SPP_CAP = 0.02, 256
+
+
+def sampling_effort(options) -> tuple[int, float | None]:
+    """(spp or cap, target relative error) from --spp / --target-error."""
+    if options.spp is not None:
+        return options.spp, None
+    return DEFAULT_SPP_CAP, options.target_error or DEFAULT_TARGET_ERROR
+
+
+def fill_uncovered(shading: np.ndarray, covered: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Copy the nearest covered pixel's shading into wanted-but-uncovered pixels."""
+    from scipy.ndimage import distance_transform_edt
+
+    holes = wanted & ~covered
+    if not holes.any() or not covered.any():
+        return shading
+    _, (rows, cols) = distance_transform_edt(~covered, return_indices=True)
+    filled = shading.copy()
+    filled[holes] = shading[rows[holes], cols[holes]]
+    return filled
+
+
+def stage_face(frame: Frame, options, models: Models) -> None:
+    """Find the face for the face refinement. The morphable-model fit needs landmarks from a
+    landmark network; until one ships, the stage reports why the face is not refined."""
+    from relightcli.geometry.face_detect import detect_face
+
+    box, reason = detect_face(frame.crop, frame.crop_mask)
+    if box is None:
+        frame.notes["face"] = {"skipped": reason}
+        return
+    frame.notes["face"] = {"box": [round(v, 1) for v in (box.left, box.top, box.width, box.height)],
+                           "skipped": "no landmark network ships yet: face shading is not refined"}
+
+
+def stage_refine(frame: Frame, options, models: Models) -> None:
+    """Full-body refinement net on [coarse shading, AO]: a residual on the coarse shading."""
+    refined = models.get("body_refine").predict(frame.coarse_shading, frame.ao, frame.crop_mask)
+    frame.shading = np.maximum(refined, 0.0) * frame.crop_mask[..., None]
+
+
 def stage_compose(frame: Frame, options, models: Models) -> None:
     """relit = albedo * shading in the crop, pasted back into the full frame."""
     height, width = frame.image.shape[:2]
     frame.relit = compose.paste_back(compose.relight(frame.albedo, frame.shading), frame.box, height, width)
-
-
-def not_built(stage: str):
-    def run(frame: Frame, options, models: Models) -> None:
-        raise MissingDependencyError(
-            f"the '{stage}' stage is not in this build yet",
-            fix="use --method sh9 or sh25, or outputs that do not need it (see `relight --help`)",
-        )
-
-    return run
 
 
 STAGES = {
@@ -124,11 +204,11 @@ STAGES = {
     "geometry": stage_geometry,
     "ao": stage_ao,
     "delight": stage_delight,
-    "reconstruct": not_built("reconstruct"),
-    "face": not_built("face"),
-    "raytrace": not_built("raytrace"),
+    "reconstruct": stage_reconstruct,
+    "face": stage_face,
+    "raytrace": stage_raytrace,
     "sh_shading": stage_sh_shading,
-    "refine": not_built("refine"),
+    "refine": stage_refine,
     "compose": stage_compose,
 }
 

@@ -10,6 +10,7 @@ from relightcli.batch import ItemReport
 from relightcli.nets.delight import DelightResult
 from relightcli.nets.geometry import GeometryMaps
 from relightcli.pipeline import RelightOptions, plan_stages, run_stages
+from relightcli.stages import Models
 
 
 def plan(outputs, method="raytrace", has_alpha=True):
@@ -54,11 +55,12 @@ def test_mesh_needs_reconstruction_but_no_lighting():
     assert "reconstruct" in p.run and "raytrace" not in p.run and "delight" not in p.run
 
 
-class StandInModels:
+class StandInModels(Models):
     """Networks with known outputs: normals facing the camera, a disc mask, constant AO and
-    albedo. Records which families were asked for."""
+    albedo. Records which families were asked for; the environment cache is the real one."""
 
     def __init__(self, albedo=0.5):
+        super().__init__(threads=1)
         self.albedo, self.used = albedo, []
 
     def get(self, family):
@@ -112,3 +114,55 @@ def test_mask_net_runs_only_without_alpha():
     assert without_alpha.used == ["geometry", "geometry"]  # mask on the whole photo, then the crop
     assert frame.notes["mask"]["source"] == "mask net"
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
+
+
+class SphereModels(StandInModels):
+    """Stand-in geometry of a ball filling the crop: exact front/back depth and normals."""
+
+    def predict(self, image, normal=None):
+        if normal is not None:
+            return super().predict(image, normal)
+        size = image.shape[0]
+        centres = -1.0 + (np.arange(size) + 0.5) * 2.0 / size
+        x, y = np.meshgrid(centres, -centres)
+        r2 = x**2 + y**2
+        inside = r2 < 0.6**2
+        z = np.sqrt(np.clip(0.6**2 - r2, 0, None)).astype(np.float32)
+        normals = np.stack([x, y, z], axis=-1) / 0.6 * inside[..., None]
+        return GeometryMaps(normals.astype(np.float32), normals * [1, 1, -1], z * inside, -z * inside, inside.astype(np.float32))
+
+
+def test_raytraced_ball_under_constant_light_is_white_furnace():
+    # Reconstruct the stand-in ball, smooth it, ray-trace it under a constant environment:
+    # an unoccluded convex surface has shading == L exactly (MIS is exact for a constant map).
+    image = np.full((64, 64, 3), 0.3, np.float32)
+    mask = np.zeros((64, 64), np.float32)
+    mask[8:56, 8:56] = 1.0
+    env = np.full((8, 16, 3), 1.5, np.float32)
+    options = RelightOptions(outputs=("shading", "mesh"), method="raytrace-norefine", resolution=48, spp=8)
+    frame, plan = run_stages(image, mask, env, options, ItemReport("x"), SphereModels())
+    assert plan.run == ["mask", "crop", "geometry", "reconstruct", "raytrace"]
+    assert frame.mesh.is_watertight
+    # The square mask makes a slab around the ball: the ball's top cap sees the whole
+    # hemisphere (shading == L exactly), its rim is shadowed by the slab (below L, never above).
+    centres = -1.0 + (np.arange(48) + 0.5) * 2.0 / 48
+    x, y = np.meshgrid(centres, -centres)
+    cap = x**2 + y**2 < 0.15**2  # tilt < 15 deg: the hemisphere meets z = 0 beyond the slab
+    np.testing.assert_allclose(frame.coarse_shading[cap], 1.5, rtol=1e-4)
+    inside = frame.crop_mask > 0.5
+    assert np.isfinite(frame.coarse_shading).all()
+    assert frame.coarse_shading[inside].max() <= 1.5 * (1 + 1e-4)
+    assert frame.coarse_shading[inside].min() > 0.0
+    assert frame.notes["raytrace"]["rays"] > 0
+
+
+def test_uncovered_mask_pixels_take_the_nearest_shading():
+    from relightcli.stages import fill_uncovered
+
+    shading = np.zeros((1, 5, 3), np.float32)
+    shading[0, 0] = 1.0
+    shading[0, 4] = 3.0
+    covered = np.array([[True, False, False, False, True]])
+    wanted = np.array([[True, True, False, True, True]])
+    filled = fill_uncovered(shading, covered, wanted)
+    np.testing.assert_array_equal(filled[0, :, 0], [1.0, 1.0, 0.0, 3.0, 3.0])

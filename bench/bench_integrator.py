@@ -1,0 +1,203 @@
+"""Error against run time of the environment-light integrator (not part of the test suite).
+
+    python bench/bench_integrator.py [--res 512] [--max-spp 1024] [--workers 2] [--quick]
+
+Renders the MakeHuman body (subdivided once with trimesh: ~107k triangles) at RES x RES
+(default rectangle: the body's x/y bounds + 5%), under a hard-sun and an overcast HDR, for
+strategies uniform / cosine / env / mis at 4..max-spp samples per pixel and for target errors,
+and measures wall time and error against a converged reference. The reference is rendered on
+a random subset of the mask (REF_PIXELS pixels at REF_SPP samples), so errors are measured on
+those pixels. Also measures Mrays/s of the integrator against raw embreex on the same kind of
+rays, and scaling from 1 to 2 processes.
+
+Writes bench/results/integrator_error_vs_time.csv and .png (log-log) and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests" / "render"))
+
+from conftest import body_mesh, load_hdr  # noqa: E402  (test helpers: OBJ group, HDR reader)
+
+from relightcli.render.camera import default_rect, render_pixel_geometry  # noqa: E402
+from relightcli.render.environment import EnvironmentLight  # noqa: E402
+from relightcli.render.estimators import cosine_directions, ray_origins  # noqa: E402
+from relightcli.render.integrator import shade_environment  # noqa: E402
+from relightcli.render.scene import Scene  # noqa: E402
+
+HDRS = {"hard_sun": "noon_grass_1k.hdr", "overcast": "kloofendal_overcast_1k.hdr"}
+STRATEGIES = ("uniform", "cosine", "env", "mis")
+TARGETS = (0.08, 0.04, 0.02)
+REF_PIXELS = 2048
+REF_SPP = 4096
+RESULTS = ROOT / "bench" / "results"
+
+
+def build_scene(workers):
+    import trimesh
+
+    mesh = body_mesh()
+    vertices, faces = trimesh.remesh.subdivide(mesh.vertices, mesh.faces)
+    body = trimesh.Trimesh(vertices, faces, process=False)
+    return Scene.from_trimesh(body, threads=workers), len(faces)
+
+
+def subset_geometry(geometry, count, seed=0):
+    """The same camera geometry with the mask reduced to `count` random mask pixels."""
+    pixels = np.flatnonzero(geometry.mask.ravel())
+    keep = np.random.default_rng(seed).choice(pixels, size=min(count, pixels.size), replace=False)
+    mask = np.zeros(geometry.mask.size, bool)
+    mask[keep] = True
+    return replace(geometry, mask=mask.reshape(geometry.mask.shape))
+
+
+def errors(result, reference):
+    """(relative RMSE, median true relative error, median reported relative error) on the
+    reference's pixels; relative to the channel-mean reference."""
+    m = reference.mask
+    ref = reference.mean[m].mean(axis=1).astype(np.float64)
+    got = result.mean[m].mean(axis=1).astype(np.float64)
+    rel_rmse = np.sqrt(np.mean((got - ref) ** 2)) / np.mean(ref)
+    lit = ref > 1e-3 * np.median(ref)
+    true_rel = np.median(np.abs(got - ref)[lit] / ref[lit])
+    reported = np.median(result.relative_error()[m][lit])
+    return float(rel_rmse), float(true_rel), float(reported)
+
+
+def raw_embree_rate(scene, geometry, rays=2_000_000):
+    """Mrays/s of bare embreex occlusion queries on cosine rays from the visible surface."""
+    pixels = np.flatnonzero(geometry.mask.ravel())
+    index = np.random.default_rng(1).choice(pixels, size=rays)
+    p = geometry.position.reshape(-1, 3)[index].astype(np.float64)
+    n = geometry.normal.reshape(-1, 3)[index].astype(np.float64)
+    g = geometry.geometric_normal.reshape(-1, 3)[index].astype(np.float64)
+    d = cosine_directions(n, np.random.default_rng(2).random((rays, 2)))
+    origins = ray_origins(scene, p, g).astype(np.float32)
+    d = d.astype(np.float32)
+    rates = {}
+    for threads in (1, 2):
+        tracer = Scene(scene.vertices, scene.faces, threads=threads)
+        tracer.warm_up()
+        start = time.perf_counter()
+        tracer.occluded(origins, d)
+        rates[threads] = rays / (time.perf_counter() - start) / 1e6
+        tracer.close()
+    return rates
+
+
+def run(args):
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    scene, triangles = build_scene(1)
+    geometry = render_pixel_geometry(scene, default_rect(scene), (args.res, args.res))
+    coverage = float(geometry.mask.mean())
+    print(f"body: {triangles} triangles, {args.res}x{args.res}, mask covers {coverage:.1%}")
+    rows = []
+    spps = [s for s in (4, 16, 64, 256, 1024) if s <= args.max_spp]
+    for hdr_name, hdr_file in HDRS.items():
+        light = EnvironmentLight(load_hdr(hdr_file))
+        light.sun_and_sky()
+        subset = subset_geometry(geometry, REF_PIXELS)
+        start = time.perf_counter()
+        reference = shade_environment(scene, subset, light, spp=REF_SPP, seed=12345,
+                                      workers=args.workers)
+        print(f"{hdr_name}: reference {REF_SPP} spp on {REF_PIXELS} pixels in "
+              f"{time.perf_counter() - start:.1f} s, median rel. stderr "
+              f"{reference.median_relative_error():.4f}")
+        jobs = [(s, "spp", spp, None) for s in STRATEGIES for spp in spps]
+        jobs += [("mis", "target", args.max_spp * 4, t) for t in TARGETS]
+        for strategy, mode, spp, target in jobs:
+            result = shade_environment(scene, geometry, light, spp=spp, target_error=target,
+                                       strategy=strategy, seed=1, workers=args.workers)
+            rel_rmse, true_rel, reported = errors(result, reference)
+            row = dict(hdr=hdr_name, strategy=strategy, plan=result.strategy, mode=mode,
+                       spp=float(result.passes[geometry.mask].mean()), target=target or "",
+                       seconds=round(result.seconds, 3), rays=result.rays,
+                       mrays_per_s=round(result.rays / result.seconds / 1e6, 3),
+                       rel_rmse=round(rel_rmse, 5), median_rel_error=round(true_rel, 5),
+                       median_rel_error_reported=round(reported, 5), workers=args.workers,
+                       coverage=round(coverage, 4))
+            rows.append(row)
+            print(f"{hdr_name:9s} {strategy:8s} {result.strategy:8s} {mode:6s} spp {row['spp']:7.1f} "
+                  f"target {str(target or '-'):5s} {row['seconds']:8.2f} s  {row['mrays_per_s']:6.2f} Mrays/s  "
+                  f"relRMSE {rel_rmse:.4f}  median rel err {true_rel:.4f} (reported {reported:.4f})")
+    write_csv(rows)
+    plot(rows)
+    rates = raw_embree_rate(scene, geometry)
+    print(f"raw embreex occlusion: {rates[1]:.2f} Mrays/s on 1 process, {rates[2]:.2f} on 2 "
+          f"({rates[2] / rates[1]:.2f}x)")
+    scaling(scene, geometry, args)
+
+
+def scaling(scene, geometry, args):
+    """Integrator wall time on 1 and 2 worker processes, same render."""
+    light = EnvironmentLight(load_hdr(HDRS["hard_sun"]))
+    times = {}
+    for workers in (1, 2):
+        result = shade_environment(scene, geometry, light, spp=64, seed=1, workers=workers)
+        times[workers] = result.seconds
+        print(f"integrator, {workers} worker(s): {result.seconds:.2f} s, "
+              f"{result.rays / result.seconds / 1e6:.2f} Mrays/s")
+    print(f"integrator scaling 1 -> 2 workers: {times[1] / times[2]:.2f}x")
+
+
+def write_csv(rows):
+    path = RESULTS / "integrator_error_vs_time.csv"
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path}")
+
+
+def plot(rows):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(HDRS), figsize=(11, 4.5), sharey=True)
+    for ax, hdr in zip(axes, HDRS):
+        for strategy in STRATEGIES:
+            pts = [(r["seconds"], r["rel_rmse"]) for r in rows
+                   if r["hdr"] == hdr and r["strategy"] == strategy and r["mode"] == "spp"]
+            if pts:
+                ax.loglog(*zip(*pts), "o-", label=strategy)
+        pts = [(r["seconds"], r["rel_rmse"]) for r in rows if r["hdr"] == hdr and r["mode"] == "target"]
+        if pts:
+            ax.loglog(*zip(*pts), "k*", markersize=10, label="mis, target error")
+        ax.set_title(f"{hdr} ({HDRS[hdr]})")
+        ax.set_xlabel("wall time [s]")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("relative RMSE vs reference")
+    axes[0].legend()
+    fig.tight_layout()
+    path = RESULTS / "integrator_error_vs_time.png"
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--res", type=int, default=512)
+    parser.add_argument("--max-spp", type=int, default=1024)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--quick", action="store_true", help="128x128, up to 64 spp")
+    args = parser.parse_args()
+    if args.quick:
+        args.res, args.max_spp = 128, 64
+    run(args)
+
+
+if __name__ == "__main__":
+    main()

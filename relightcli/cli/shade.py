@@ -1,0 +1,168 @@
+"""`relight shade MESH --hdr ENV -o shading.exr`: ray-traced white-Lambertian shading of a mesh.
+
+Pixel-aligned orthographic camera looking along -Z (DESIGN.md). The default rectangle is the
+mesh's x/y bounds padded by 5%. `run` returns the report dict; it never prints or exits (the
+dispatcher in relightcli.cli does both).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+import warnings
+from pathlib import Path
+
+from relightcli.errors import InputError, OutputError, RelightWarning, UsageError
+
+# Below this many estimated rays the tracing processes cost more to start than they save
+PARALLEL_MIN_RAYS = 1 << 21
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `shade` options (the common --threads/--json/--overwrite come from the caller)."""
+    parser.add_argument("mesh", metavar="MESH", help="any mesh file trimesh reads (OBJ, PLY, GLB, STL, ...)")
+    parser.add_argument("--hdr", required=True, metavar="ENV",
+                        help="equirectangular environment map (.hdr/.exr, linear radiance, W = 2H)")
+    parser.add_argument("-o", "--output", required=True, metavar="PATH",
+                        help="shading image (.exr keeps linear float values)")
+    parser.add_argument("--res", nargs=2, type=int, default=(512, 512), metavar=("W", "H"),
+                        help="image size in pixels (default 512 512)")
+    parser.add_argument("--rect", nargs=4, type=float, default=None, metavar=("X0", "X1", "Y0", "Y1"),
+                        help="world rectangle the image covers (default: mesh x/y bounds + 5%%)")
+    amount = parser.add_mutually_exclusive_group()
+    amount.add_argument("--spp", type=int, default=None, metavar="N",
+                        help="samples per pixel (default 64; with --target-error/--time-budget, the cap)")
+    amount.add_argument("--target-error", type=float, default=None, metavar="E",
+                        help="stop each pixel at this relative standard error (e.g. 0.02)")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="S",
+                        help="stop sampling after about S seconds")
+    parser.add_argument("--bounces", type=int, choices=(1, 2), default=1,
+                        help="1: direct light; 2: plus one diffuse interreflection")
+    parser.add_argument("--albedo", type=float, default=1.0,
+                        help="surface albedo for the second bounce (default 1: white)")
+    parser.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
+                        help="turn the environment about +Y, counter-clockwise seen from above")
+    parser.add_argument("--seed", type=int, default=0, metavar="S", help="sampling seed (default 0)")
+    parser.add_argument("--strategy", choices=("mis", "env", "cosine", "uniform"), default="mis",
+                        help="direction sampling (default mis: planned per environment)")
+    parser.add_argument("--sampler", choices=("sobol", "independent"), default="sobol",
+                        help="sample sequence (default sobol: randomised QMC)")
+    parser.add_argument("--error-map", default=None, metavar="PATH",
+                        help="also write the per-pixel standard error (linear, same units)")
+    parser.add_argument("--mask-map", default=None, metavar="PATH",
+                        help="also write the coverage mask (1 on the mesh, 0 elsewhere)")
+
+
+def run(args, threads: int) -> dict:
+    """Render, write the requested files, return the report:
+    {"spp", "rays", "seconds", "mrays_per_s", "rel_error", ...}."""
+    import numpy as np
+
+    from relightcli.io.envmap import load_envmap
+    from relightcli.io.images import write_image
+    from relightcli.render.camera import default_rect, render_pixel_geometry
+    from relightcli.render.environment import EnvironmentLight
+    from relightcli.render.integrator import shade_environment
+    from relightcli.render.scene import Scene
+
+    outputs = _check_outputs(args)
+    spp = _samples(args)
+    mesh = load_mesh(args.mesh)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RelightWarning)
+        env = load_envmap(args.hdr, rotate_deg=args.rotate)
+        light = EnvironmentLight(env)
+    width, height = args.res
+    estimated_rays = width * height * (spp or 1024) * 2
+    parallel = threads if estimated_rays >= PARALLEL_MIN_RAYS else 1
+    start = time.perf_counter()
+    with Scene.from_trimesh(mesh, threads=parallel) as scene:
+        rect = tuple(args.rect) if args.rect is not None else default_rect(scene)
+        geometry = render_pixel_geometry(scene, rect, (width, height))
+        result = shade_environment(
+            scene, geometry, light, spp=spp or (1 << 16 if args.time_budget else 4096),
+            target_error=args.target_error, time_budget=args.time_budget,
+            strategy=args.strategy, bounces=args.bounces, albedo=args.albedo,
+            sampler=args.sampler, seed=args.seed)
+    seconds = time.perf_counter() - start
+    mask = geometry.mask.astype(np.float32)
+    write_image(outputs["shading"], result.mean, alpha=mask, overwrite=args.overwrite)
+    if "error" in outputs:
+        write_image(outputs["error"], result.stderr, alpha=mask, overwrite=args.overwrite)
+    if "mask" in outputs:
+        write_image(outputs["mask"], mask, overwrite=args.overwrite, srgb=False)
+    return _report(args, result, geometry, rect, width * height, seconds, outputs, caught)
+
+
+def load_mesh(path):
+    """A trimesh.Trimesh from any file trimesh reads; InputError naming the file otherwise."""
+    import trimesh
+
+    if not os.path.isfile(path):
+        raise InputError("mesh file not found", path=path, fix="check the path")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise InputError(f"cannot read mesh: {exc}", path=path,
+                         fix="give a mesh trimesh reads (OBJ, PLY, GLB, STL, OFF)") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError("file holds no triangles", path=path, fix="give a triangle mesh")
+    return mesh
+
+
+def _samples(args):
+    if args.spp is not None and args.spp < 1:
+        raise UsageError(f"--spp must be >= 1, got {args.spp}")
+    if args.target_error is not None and not args.target_error > 0:
+        raise UsageError(f"--target-error must be > 0, got {args.target_error}")
+    if args.time_budget is not None and not args.time_budget > 0:
+        raise UsageError(f"--time-budget must be > 0, got {args.time_budget}")
+    if min(args.res) < 1:
+        raise UsageError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
+    if args.spp is None and args.target_error is None and args.time_budget is None:
+        return 64
+    return args.spp
+
+
+def _check_outputs(args) -> dict:
+    """Output paths by role, checked before any work: distinct, not an input, writable."""
+    outputs = {"shading": args.output}
+    if args.error_map:
+        outputs["error"] = args.error_map
+    if args.mask_map:
+        outputs["mask"] = args.mask_map
+    resolved = [Path(p).resolve() for p in outputs.values()]
+    if len(set(resolved)) != len(resolved):
+        raise OutputError("two outputs share one path", path=args.output,
+                          fix="give -o, --error-map and --mask-map different names")
+    inputs = {Path(args.mesh).resolve(), Path(args.hdr).resolve()}
+    for path, full in zip(outputs.values(), resolved):
+        if full in inputs:
+            raise OutputError("output would overwrite an input", path=path, fix="choose another name")
+        if full.exists() and not args.overwrite:
+            raise OutputError("file exists", path=path, fix="pass --overwrite or choose another name")
+        if not full.parent.is_dir():
+            raise OutputError("output directory does not exist", path=path,
+                              fix="create the directory first")
+    return outputs
+
+
+def _report(args, result, geometry, rect, primary_rays, seconds, outputs, caught) -> dict:
+    """The JSON report; seconds and Mrays/s cover the scene build, the camera and sampling."""
+    rays = result.rays + primary_rays
+    masked = int(geometry.mask.sum())
+    spp = float(result.passes[geometry.mask].mean()) if masked else 0.0
+    return {
+        "spp": round(spp, 2),
+        "rays": int(rays),
+        "seconds": round(seconds, 4),
+        "mrays_per_s": round(rays / max(seconds, 1e-9) / 1e6, 3),
+        "rel_error": round(result.median_relative_error(), 5),
+        "strategy": result.strategy,
+        "pixels": masked,
+        "resolution": list(args.res),
+        "rect": [float(c) for c in rect],
+        "outputs": outputs,
+        "warnings": [str(w.message) for w in caught if issubclass(w.category, RelightWarning)],
+    }

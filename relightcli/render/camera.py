@@ -1,0 +1,86 @@
+"""Orthographic, pixel-aligned camera (DESIGN.md): looks along -Z, +Y up, row 0 at the top.
+
+Pixel (i, j) of an H x W image over the world rectangle [x0, x1] x [y0, y1] has its centre at
+x = x0 + (j + 0.5)(x1 - x0)/W, y = y1 - (i + 0.5)(y1 - y0)/H.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from relightcli.errors import UsageError
+from relightcli.render.scene import Scene, orient_normals
+
+
+@dataclass
+class PixelGeometry:
+    """What the camera sees, per pixel of an (H, W) image, in the scene's local frame.
+
+    mask (H, W) bool: a surface is hit. position (H, W, 3) float32 local hit point;
+    normal (H, W, 3) float32 unit shading normal (interpolated vertex normal, replaced by the
+    geometric normal where it faces away from it); geometric_normal (H, W, 3) float32 unit,
+    flipped toward the camera side of the surface. Zero outside the mask. rect: the world
+    rectangle (x0, x1, y0, y1) the image covers.
+    """
+
+    mask: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    geometric_normal: np.ndarray
+    rect: tuple
+
+    @property
+    def resolution(self):
+        return self.mask.shape
+
+
+def pixel_centres(rect, resolution):
+    """World (x, y) of the pixel centres. rect (x0, x1, y0, y1), resolution (W, H).
+
+    Returns (H, W, 2) float64.
+    """
+    x0, x1, y0, y1 = (float(c) for c in rect)
+    width, height = (int(r) for r in resolution)
+    if width < 1 or height < 1:
+        raise UsageError(f"resolution must be positive, got {width}x{height}")
+    if not (x1 > x0 and y1 > y0):
+        raise UsageError(f"rectangle must have x1 > x0 and y1 > y0, got {rect}")
+    x = x0 + (np.arange(width) + 0.5) * (x1 - x0) / width
+    y = y1 - (np.arange(height) + 0.5) * (y1 - y0) / height
+    xx, yy = np.meshgrid(x, y)
+    return np.stack([xx, yy], axis=-1)
+
+
+def default_rect(scene: Scene, pad: float = 0.05):
+    """The mesh's world x/y bounds padded by `pad` of their size on each side: (x0, x1, y0, y1)."""
+    lo, hi = scene.to_world(scene.bounds_local[0]), scene.to_world(scene.bounds_local[1])
+    dx, dy = (hi[0] - lo[0]) * pad, (hi[1] - lo[1]) * pad
+    return (lo[0] - dx, hi[0] + dx, lo[1] - dy, hi[1] + dy)
+
+
+def render_pixel_geometry(scene: Scene, rect, resolution) -> PixelGeometry:
+    """Trace one orthographic primary ray per pixel (a single batch) along -Z."""
+    centres = pixel_centres(rect, resolution)
+    height, width = centres.shape[:2]
+    # Start above the mesh's local z range, in the local frame (float64 until the cast)
+    z_start = scene.bounds_local[1, 2] + 0.01 * scene.diagonal
+    world_xy = centres.reshape(-1, 2)
+    origins = np.empty((world_xy.shape[0], 3))
+    origins[:, :2] = world_xy - scene.centre[:2]
+    origins[:, 2] = z_start
+    directions = np.tile(np.array([0.0, 0.0, -1.0]), (origins.shape[0], 1))
+    hits = scene.intersect(origins, directions)
+    mask = hits.hit
+    ns, ng = orient_normals(hits.geometric_normal, scene.shading_normals(hits), directions)
+    position = origins + hits.t[:, None].astype(np.float64) * directions
+    zero = ~mask[:, None]
+    return PixelGeometry(
+        mask=mask.reshape(height, width),
+        position=np.where(zero, 0.0, position).astype(np.float32).reshape(height, width, 3),
+        normal=np.where(zero, 0.0, ns).astype(np.float32).reshape(height, width, 3),
+        geometric_normal=np.where(zero, 0.0, ng).astype(np.float32).reshape(height, width, 3),
+        rect=tuple(float(c) for c in rect),
+    )
+

@@ -1,0 +1,150 @@
+"""An environment map as a light: radiance lookup and importance sampling, built once per map.
+
+Directions follow relightcli.io.envmap (the single source of truth); radiance is linear RGB,
+float32 (H, W, 3) with W = 2H. Lookups are nearest-texel, the same piecewise-constant function
+the sampling distribution is built from, so `eval / pdf` is exact per texel.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from relightcli.errors import InputError, RelightWarning
+from relightcli.io.envmap import direction_to_uv, texel_solid_angles, uv_to_direction
+from relightcli.render.sampling import (
+    build_piecewise_constant_2d,
+    invert_piecewise_constant_2d_sample,
+    piecewise_constant_2d_pdf,
+    sample_piecewise_constant_2d,
+)
+
+# Share of the energy in the brightest 0.1% of texels above which a map is "one sun disc"
+SUN_ENERGY_FRACTION = 0.999
+# Relative spread below which a map counts as constant
+CONSTANT_TOLERANCE = 1e-6
+
+
+def sanitize_radiance(radiance) -> np.ndarray:
+    """(H, W, 3) float32 copy with NaN, Inf and negative texels set to 0 (warns when it does)."""
+    radiance = np.asarray(radiance, dtype=np.float32)
+    if radiance.ndim != 3 or radiance.shape[2] != 3 or radiance.shape[0] < 1:
+        raise InputError(
+            f"environment map must be (H, W, 3), got shape {radiance.shape}",
+            fix="pass an equirectangular RGB map with W = 2H",
+        )
+    bad = ~np.isfinite(radiance) | (radiance < 0)
+    if bad.any():
+        warnings.warn(
+            f"environment map: {int(bad.sum())} NaN/Inf/negative values set to 0", RelightWarning
+        )
+        radiance = np.where(bad, np.float32(0.0), radiance)
+    return np.ascontiguousarray(radiance, dtype=np.float32)
+
+
+class EnvironmentLight:
+    """Radiance lookup and a sampling distribution proportional to mean-RGB radiance x sin(theta).
+
+    radiance: (H, W, 3) linear RGB. The distribution over texel coordinates (u, v) folds in the
+    texel solid angle (exact per-row, proportional to sin(theta)); `pdf` converts back to
+    solid angle by dividing by 2 pi^2 sin(theta).
+    """
+
+    def __init__(self, radiance):
+        self.radiance = sanitize_radiance(radiance)
+        height, width, _ = self.radiance.shape
+        energy = self.radiance.mean(axis=2).astype(np.float64) * texel_solid_angles(height, width)
+        self.total_energy = float(energy.sum())
+        self.distribution = build_piecewise_constant_2d(energy)
+        self.is_black = self.total_energy <= 0.0
+        flat = self.radiance.reshape(-1, 3)
+        spread = flat.max(axis=0) - flat.min(axis=0)
+        self.is_constant = bool(np.all(spread <= CONSTANT_TOLERANCE * np.maximum(flat.max(axis=0), 1e-30)))
+        self.constant_radiance = flat.mean(axis=0).astype(np.float64) if self.is_constant else None
+        self.sun_fraction = _top_energy_fraction(energy, 0.001)
+        self.is_sun_only = (not self.is_black) and self.sun_fraction >= SUN_ENERGY_FRACTION
+        self._sun_and_sky = None
+
+    def sun_and_sky(self):
+        """`split_sun()`, computed once per light (renders of a turntable reuse it)."""
+        if self._sun_and_sky is None:
+            self._sun_and_sky = self.split_sun()
+        return self._sun_and_sky
+
+    def split_sun(self, share: float = 0.001):
+        """(sun, sky): two lights whose radiances sum to this one's. The sun holds the
+        brightest `share` of texels by energy, the sky the rest, so each can be sampled
+        on its own: the choice between sun and sky then adds no variance."""
+        energy = self.radiance.mean(axis=2) * texel_solid_angles(*self.radiance.shape[:2])
+        count = max(1, int(round(share * energy.size)))
+        threshold = np.partition(energy.ravel(), energy.size - count)[energy.size - count]
+        in_sun = (energy >= threshold) & (energy > 0)
+        sun = np.where(in_sun[..., None], self.radiance, np.float32(0.0))
+        sky = np.where(in_sun[..., None], np.float32(0.0), self.radiance)
+        return EnvironmentLight(sun), EnvironmentLight(sky)
+
+    @property
+    def shape(self):
+        return self.radiance.shape
+
+    def eval(self, directions) -> np.ndarray:
+        """Radiance (..., 3) float32 arriving from unit directions (..., 3) (nearest texel)."""
+        u, v = direction_to_uv(directions)
+        return self.radiance[self._row(v), self._col(u)]
+
+    def sample(self, u):
+        """Directions (..., 3) float64 and solid-angle pdfs (...) float64 from u (..., 2)."""
+        directions, pdf, _ = self.sample_radiance(u)
+        return directions, pdf
+
+    def sample_radiance(self, u):
+        """`sample`, plus the radiance (..., 3) float32 from each sampled direction (read
+        from the sampled texel, no second lookup)."""
+        uv, pdf_uv = sample_piecewise_constant_2d(self.distribution, u)
+        directions = uv_to_direction(uv[..., 0], uv[..., 1])
+        radiance = self.radiance[self._row(uv[..., 1]), self._col(uv[..., 0])]
+        return directions, _uv_pdf_to_solid_angle(pdf_uv, uv[..., 1]), radiance
+
+    def eval_pdf(self, directions):
+        """(`eval`, `pdf`) of unit directions (..., 3) with a single direction lookup."""
+        u, v = direction_to_uv(directions)
+        row, col = self._row(v), self._col(u)
+        pdf_uv = self.distribution.func[row, col] / self.distribution.marginal.integral
+        return self.radiance[row, col], _uv_pdf_to_solid_angle(pdf_uv, v)
+
+    def pdf(self, directions) -> np.ndarray:
+        """Solid-angle pdf (...) float64 of `sample` producing unit directions (..., 3)."""
+        u, v = direction_to_uv(directions)
+        pdf_uv = piecewise_constant_2d_pdf(self.distribution, np.stack([u, v], axis=-1))
+        return _uv_pdf_to_solid_angle(pdf_uv, v)
+
+    def invert_sample(self, directions) -> np.ndarray:
+        """The u (..., 2) that `sample` maps to unit directions (..., 3)."""
+        u, v = direction_to_uv(directions)
+        return invert_piecewise_constant_2d_sample(self.distribution, np.stack([u, v], axis=-1))
+
+    def _row(self, v):
+        height = self.radiance.shape[0]
+        return np.clip((np.asarray(v) * height).astype(np.int64), 0, height - 1)
+
+    def _col(self, u):
+        width = self.radiance.shape[1]
+        return np.clip((np.asarray(u) * width).astype(np.int64), 0, width - 1)
+
+
+def _uv_pdf_to_solid_angle(pdf_uv, v):
+    # p(w) = p(u, v) / (2 pi^2 sin(theta)); a sample exactly at a pole has no density
+    sin_theta = np.sin(np.pi * np.asarray(v, dtype=np.float64))
+    safe = np.where(sin_theta > 1e-12, sin_theta, 1.0)
+    return np.where(sin_theta > 1e-12, pdf_uv / (2.0 * np.pi * np.pi * safe), 0.0)
+
+
+def _top_energy_fraction(energy, share: float) -> float:
+    """Fraction of the total energy held by the brightest `share` of texels (at least one)."""
+    total = energy.sum()
+    if total <= 0:
+        return 0.0
+    count = max(1, int(round(share * energy.size)))
+    top = np.partition(energy.ravel(), energy.size - count)[energy.size - count:]
+    return float(top.sum() / total)

@@ -1,0 +1,372 @@
+"""Monte Carlo environment lighting of what the camera sees: mean, standard error, cost.
+
+A *pass* gives every active pixel one sample of its estimator (for MIS, one environment and
+one cosine direction: two shadow rays). Passes run in rounds, each round one vectorised batch;
+after a round, pixels whose relative standard error reached the target stop (adaptive), and a
+time budget stops everything. Pixels outside the mask trace nothing.
+
+Samples: "sobol" (default) is randomised QMC: one scrambled Sobol sequence shared by all
+pixels, each pixel running RQMC_GROUPS copies of it under independent random Cranley-Patterson
+shifts (pass k uses point k // R of copy k % R). The copies' means are independent and
+unbiased, so their spread gives an honest standard error (the spread of single Sobol passes
+would overstate it: the points are better spread than independent ones). "independent"
+draws i.i.d. uniforms and estimates the standard error from the pass values.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import qmc
+
+from relightcli.errors import UsageError
+from relightcli.render.camera import PixelGeometry
+from relightcli.render.environment import EnvironmentLight
+from relightcli.render.estimators import (
+    BOUNCE_DIMENSIONS,
+    DIMENSIONS,
+    RAYS_PER_SAMPLE,
+    direct_lighting,
+    indirect_lighting,
+    ray_origins,
+)
+from relightcli.render.parallel import ForkedPasses, pass_statistics
+from relightcli.render.scene import Scene
+
+STRATEGIES = ("mis", "env", "cosine", "uniform")
+# Independent randomisations of the Sobol sequence per pixel (standard error from R means)
+RQMC_GROUPS = 4
+SAMPLERS = ("sobol", "independent")
+# Rays per vectorised round (bounds memory: ~100 bytes per ray in flight)
+ROUND_RAYS = 1 << 19
+# Share of the energy in the brightest 0.1% of texels from which the sun is sampled apart
+SUN_SPLIT_FRACTION = 0.1
+# Pixels darker than this share of the median count as converged at this absolute error
+DARK_FLOOR = 0.01
+
+
+@dataclass
+class ShadingResult:
+    """mean, stderr: (H, W, 3) float32 linear radiance (shading units), zero outside mask;
+    mask (H, W) bool; passes (H, W) int32 samples per pixel; rays: rays traced here (the
+    camera's primary rays are not included); seconds: wall time; strategy: the strategy the plan ran."""
+
+    mean: np.ndarray
+    stderr: np.ndarray
+    mask: np.ndarray
+    passes: np.ndarray
+    rays: int
+    seconds: float
+    strategy: str
+
+    def relative_error(self) -> np.ndarray:
+        """(H, W) float32 stderr / mean on the channel average; 0 where both are 0."""
+        return _relative(self.mean.mean(axis=2), self.stderr.mean(axis=2), 0.0)
+
+    def median_relative_error(self) -> float:
+        """Median over the mask of `relative_error` (0 for an empty mask)."""
+        rel = self.relative_error()[self.mask]
+        return float(np.median(rel)) if rel.size else 0.0
+
+
+@dataclass(frozen=True)
+class LightingPlan:
+    """What a render samples: `terms`, pairs (light, strategy) whose estimates add up to the
+    shading under `light` (the whole environment, used by the second bounce)."""
+
+    name: str
+    light: EnvironmentLight
+    terms: tuple
+
+    @property
+    def dims(self) -> int:
+        return sum(DIMENSIONS[strategy] for _, strategy in self.terms)
+
+    @property
+    def rays_per_pass(self) -> int:
+        return sum(RAYS_PER_SAMPLE[strategy] for _, strategy in self.terms)
+
+
+def plan_lighting(light: EnvironmentLight, requested: str) -> LightingPlan:
+    """What to run. "none" for a black map. "mis" is planned: cosine sampling under a constant
+    map (perfect importance sampling), environment sampling when one sun disc holds the
+    energy (cosine samples would almost never find it), and when a sun holds a good share
+    of it, the sun sampled on its own plus MIS on the rest ("sun+mis"), so that choosing
+    between sun and sky adds no variance. Other strategies run as asked."""
+    if requested not in STRATEGIES:
+        raise UsageError(f"unknown strategy {requested!r}", fix=f"use one of {', '.join(STRATEGIES)}")
+    if light.is_black:
+        return LightingPlan("none", light, ())
+    if requested != "mis":
+        return LightingPlan(requested, light, ((light, requested),))
+    if light.is_constant:
+        return LightingPlan("cosine", light, ((light, "cosine"),))
+    if light.is_sun_only:
+        return LightingPlan("env", light, ((light, "env"),))
+    if light.sun_fraction >= SUN_SPLIT_FRACTION:
+        sun, sky = light.sun_and_sky()
+        return LightingPlan("sun+mis", light, ((sun, "env"), (sky, "mis")))
+    return LightingPlan("mis", light, ((light, "mis"),))
+
+
+def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentLight, *,
+                      spp: int = 64, target_error: float | None = None,
+                      time_budget: float | None = None, strategy: str = "mis",
+                      bounces: int = 1, albedo=1.0, sampler: str = "sobol", seed: int = 0,
+                      min_spp: int = 16, max_distance: float | None = None,
+                      workers: int = 1) -> ShadingResult:
+    """Shading (DESIGN.md units) of every masked pixel under `light`.
+
+    spp: passes per pixel, or the cap when target_error / time_budget are given (rounded up
+    to a multiple of RQMC_GROUPS for "sobol"; so is min_spp, the first adaptive round).
+    target_error: stop a pixel when stderr / mean (channel average) <= this.
+    time_budget: seconds; sampling stops after the round that crosses it.
+    bounces: 1 (direct) or 2 (plus one diffuse interreflection with `albedo`, a float or an
+    (H, W, 3) image aligned with the camera). max_distance: occluders farther than this
+    (local units) are ignored. workers: processes sampling in parallel (forked per render;
+    worth it from about a second of work).
+    """
+    start = time.perf_counter()
+    _check_options(spp, target_error, time_budget, bounces, sampler, min_spp)
+    plan = plan_lighting(light, strategy)
+    height, width = geometry.mask.shape
+    pixels = np.flatnonzero(geometry.mask.ravel())
+    groups = RQMC_GROUPS if sampler == "sobol" else 1
+    if sampler == "sobol":
+        spp, min_spp = _round_up(spp, groups), _round_up(min_spp, groups)
+    state = _State(pixels.size, groups)
+    if plan.terms and pixels.size:
+        run = _Run(scene, geometry, plan, pixels, bounces, albedo, max_distance,
+                   sampler, seed, spp)
+        rays_before = scene.rays_traced
+        _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, workers)
+        rays = scene.rays_traced - rays_before
+    else:
+        rays = 0
+    mean, stderr = state.estimates()
+    out_mean = np.zeros((height * width, 3), np.float32)
+    out_err = np.zeros((height * width, 3), np.float32)
+    out_passes = np.zeros(height * width, np.int32)
+    out_mean[pixels], out_err[pixels], out_passes[pixels] = mean, stderr, state.count
+    return ShadingResult(mean=out_mean.reshape(height, width, 3),
+                         stderr=out_err.reshape(height, width, 3), mask=geometry.mask.copy(),
+                         passes=out_passes.reshape(height, width), rays=int(rays),
+                         seconds=time.perf_counter() - start, strategy=plan.name)
+
+
+def ambient_occlusion(scene: Scene, geometry: PixelGeometry, *, spp: int = 64,
+                      max_distance: float | None = None, sampler: str = "sobol",
+                      seed: int = 0, target_error: float | None = None,
+                      workers: int = 1) -> ShadingResult:
+    """Unoccluded fraction of the cosine-weighted hemisphere, in [0, 1], as the shading under
+    a constant white environment (cosine sampling; occluders beyond max_distance ignored).
+    The result's channels are equal."""
+    white = EnvironmentLight(np.ones((1, 2, 3), np.float32))
+    return shade_environment(scene, geometry, white, spp=spp, target_error=target_error,
+                             strategy="cosine", sampler=sampler, seed=seed,
+                             max_distance=max_distance, workers=workers)
+
+
+# ---------------------------------------------------------------------------- internals
+class _State:
+    """Running per-pixel sums (float64): pass values per randomisation group, their squares,
+    pass counts. groups == 1: i.i.d. passes, the standard error comes from the squares;
+    groups == R > 1: pass k belongs to group k % R, the error comes from the R group means."""
+
+    def __init__(self, n, groups):
+        self.groups = groups
+        self.group_total = np.zeros((n, groups, 3))
+        self.squares = np.zeros((n, 3))
+        self.count = np.zeros(n, np.int64)
+
+    def add(self, rows, statistics, passes):
+        """Add `pass_statistics` of `passes` passes of the pixels `rows`."""
+        group_sums, square_sums = statistics
+        self.group_total[rows] += group_sums
+        self.squares[rows] += square_sums
+        self.count[rows] += passes
+
+    def estimates(self):
+        """(mean, stderr), each (n, 3) float32."""
+        n = np.maximum(self.count, 1)[:, None].astype(np.float64)
+        mean = self.group_total.sum(axis=1) / n
+        if self.groups == 1:
+            variance = np.maximum(self.squares / n - mean ** 2, 0.0) / np.maximum(n - 1, 1)
+        else:
+            r = self.groups
+            group_mean = self.group_total / (n[:, :, None] / r)
+            variance = np.square(group_mean - mean[:, None, :]).sum(axis=1) / (r * (r - 1))
+        return mean.astype(np.float32), np.sqrt(variance).astype(np.float32)
+
+    def relative_error(self):
+        """(n,) stderr / mean on the channel average; pixels darker than DARK_FLOOR x the
+        median are measured against that floor (they cannot hold up the render)."""
+        mean, stderr = self.estimates()
+        lum = mean.mean(axis=1)
+        floor = DARK_FLOOR * np.median(lum) if lum.size else 0.0
+        if floor > 0:
+            return stderr.mean(axis=1) / np.maximum(lum, floor)
+        return _relative(lum, stderr.mean(axis=1), 0.0)
+
+
+class _Run:
+    """Everything one render needs to produce pass values for any set of pixels."""
+
+    def __init__(self, scene, geometry, plan, pixels, bounces, albedo, max_distance,
+                 sampler, seed, spp):
+        self.scene, self.plan = scene, plan
+        self.bounces, self.max_distance = bounces, max_distance
+        points = geometry.position.reshape(-1, 3)[pixels].astype(np.float64)
+        self.normals = geometry.normal.reshape(-1, 3)[pixels].astype(np.float64)
+        self.geometric = geometry.geometric_normal.reshape(-1, 3)[pixels].astype(np.float64)
+        self.origins = ray_origins(scene, points, self.geometric)
+        self.albedo_at = _albedo_lookup(albedo, geometry, scene)
+        self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
+        # Separate streams for direct light and the bounce: adding the bounce leaves the
+        # direct-light samples as they were
+        self.streams = {"direct": plan.dims, "bounce": BOUNCE_DIMENSIONS if bounces == 2 else 0}
+        if sampler == "sobol":
+            points = max(2, -(-spp // RQMC_GROUPS))
+            self.sobol, self.shift = {}, {}
+            for index, (name, dims) in enumerate(self.streams.items()):
+                if dims:
+                    engine = qmc.Sobol(d=dims, scramble=True, seed=np.random.default_rng([seed, 1, index]))
+                    self.sobol[name] = engine.random_base2(int(np.ceil(np.log2(points))))
+                    self.shift[name] = np.random.default_rng([seed, 2, index]).random(
+                        (RQMC_GROUPS, pixels.size, dims))
+
+    def uniforms(self, stream, first_pass, passes, rows):
+        """(passes * len(rows), dims) float64 in [0, 1), pass-major: deterministic in
+        (seed, stream, pass, pixel)."""
+        dims = self.streams[stream]
+        if self.sampler == "sobol":
+            k = np.arange(first_pass, first_pass + passes)
+            points = self.sobol[stream][k // RQMC_GROUPS][:, None, :]
+            u = points + self.shift[stream][k % RQMC_GROUPS][:, rows]
+            u -= u >= 1.0  # Cranley-Patterson rotation: (point + shift) mod 1
+            return u.reshape(-1, dims)
+        out = np.empty((passes, rows.size, dims))
+        index = list(self.streams).index(stream)
+        for k in range(passes):
+            rng = np.random.default_rng([self.seed, 3, index, first_pass + k])
+            out[k] = rng.random((self.pixel_count, dims))[rows]
+        return out.reshape(-1, dims)
+
+    def values(self, first_pass, passes, rows):
+        """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
+        u = self.uniforms("direct", first_pass, passes, rows)
+        tile = np.tile(rows, passes)
+        p, n, g = self.origins[tile], self.normals[tile], self.geometric[tile]
+        value = np.zeros((tile.size, 3))
+        d = 0
+        for light, strategy in self.plan.terms:
+            k = DIMENSIONS[strategy]
+            value += direct_lighting(self.scene, light, p, n, g, u[:, d:d + k], strategy,
+                                     self.max_distance)
+            d += k
+        if self.bounces == 2:
+            value += indirect_lighting(self.scene, self.plan.light, p, n, g,
+                                       self.uniforms("bounce", first_pass, passes, rows),
+                                       self.albedo_at)
+        return value.reshape(passes, rows.size, 3)
+
+
+def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, workers):
+    """Run passes in rounds until every pixel is done, spp is reached or time is up."""
+    if workers > 1:
+        with ForkedPasses(run, workers) as pool:
+            _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start)
+    else:
+        def statistics(first_pass, passes, rows, groups):
+            return pass_statistics(run.values(first_pass, passes, rows), first_pass, groups)
+
+        _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start)
+
+
+def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start):
+    """The sampling loop; statistics(first_pass, passes, rows, groups) evaluates a round."""
+    adaptive = target_error is not None or time_budget is not None
+    active = np.arange(state.count.size)
+    done_passes = 0
+    seconds_per_pass_pixel = None
+    rays_per_pass = run.plan.rays_per_pass + (2 if run.bounces == 2 else 0)
+    while active.size and done_passes < spp:
+        passes = _round_passes(done_passes, spp, active.size, rays_per_pass, adaptive, min_spp,
+                               state, active, target_error)
+        passes = min(_round_up(passes, state.groups), spp - done_passes)
+        if time_budget is not None and seconds_per_pass_pixel is not None:
+            left = time_budget - (time.perf_counter() - start)
+            affordable = int(left / (seconds_per_pass_pixel * active.size))
+            passes = min(passes, affordable - affordable % state.groups)
+            if passes < 1:
+                break
+        tick = time.perf_counter()
+        state.add(active, statistics(done_passes, passes, active, state.groups), passes)
+        seconds_per_pass_pixel = (time.perf_counter() - tick) / (passes * active.size)
+        done_passes += passes
+        if target_error is not None:
+            active = active[state.relative_error()[active] > target_error]
+
+
+def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, state, active,
+                  target_error):
+    """Passes in the next round: a first round of min_spp when adaptive, then about as many as
+    the median active pixel still needs (at most doubling), within spp and the ray budget."""
+    cap = max(1, ROUND_RAYS // (rays_per_pass * n_active))
+    if not adaptive:
+        return int(min(spp - done, cap))
+    if done == 0:
+        return int(min(min_spp, spp, cap) if target_error is not None else min(spp, cap, min_spp))
+    if target_error is None:
+        return int(min(spp - done, cap, done))
+    rel = state.relative_error()[active]
+    need = np.median(done * ((rel / target_error) ** 2 - 1.0))
+    return int(np.clip(np.ceil(need), 1, min(done, spp - done, cap)))
+
+
+def _round_up(value, multiple):
+    return int(-(-int(value) // multiple) * multiple)
+
+
+def _albedo_lookup(albedo, geometry: PixelGeometry, scene: Scene):
+    """A function local points (N, 3) -> albedo (N, 3) float64: a constant, or the camera-
+    aligned image sampled at the pixel a point projects to (orthographic along -Z)."""
+    if np.ndim(albedo) == 0:
+        value = float(albedo)
+        return lambda q: np.full((q.shape[0], 3), value)
+    image = np.asarray(albedo, dtype=np.float64)
+    height, width = geometry.mask.shape
+    if image.shape != (height, width, 3):
+        raise UsageError(f"albedo image must be {(height, width, 3)}, got {image.shape}")
+    x0, x1, y0, y1 = geometry.rect
+
+    def lookup(q):
+        world = scene.to_world(q)
+        col = np.clip(((world[:, 0] - x0) / (x1 - x0) * width).astype(np.int64), 0, width - 1)
+        row = np.clip(((y1 - world[:, 1]) / (y1 - y0) * height).astype(np.int64), 0, height - 1)
+        return image[row, col]
+
+    return lookup
+
+
+def _relative(mean, stderr, floor):
+    mean = np.asarray(mean, dtype=np.float64)
+    safe = np.where(mean > floor, mean, 1.0)
+    return np.where(mean > floor, stderr / safe, np.where(stderr > 0, np.inf, 0.0)).astype(np.float32)
+
+
+def _check_options(spp, target_error, time_budget, bounces, sampler, min_spp):
+    if int(spp) < 1:
+        raise UsageError(f"spp must be >= 1, got {spp}")
+    if target_error is not None and not target_error > 0:
+        raise UsageError(f"target error must be > 0, got {target_error}")
+    if time_budget is not None and not time_budget > 0:
+        raise UsageError(f"time budget must be > 0 seconds, got {time_budget}")
+    if bounces not in (1, 2):
+        raise UsageError(f"bounces must be 1 or 2, got {bounces}")
+    if sampler not in SAMPLERS:
+        raise UsageError(f"unknown sampler {sampler!r}", fix=f"use one of {', '.join(SAMPLERS)}")
+    if int(min_spp) < 2:
+        raise UsageError(f"min_spp must be >= 2 (a standard error needs two passes), got {min_spp}")

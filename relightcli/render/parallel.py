@@ -1,0 +1,68 @@
+"""Sample passes on several cores: forked workers that inherit the render's state.
+
+embreex holds the GIL while it traces and most of a pass is numpy on small arrays, so threads
+do not scale. Workers are forked once per render, after the BVH is built and the render's
+arrays exist, so they inherit both (copy-on-write) and nothing large is pickled: each round
+sends pixel indices and gets back per-pixel sums.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+
+import numpy as np
+
+_RUN = None  # the render a forked worker inherited
+
+
+def pass_statistics(values, first_pass, groups):
+    """Per-pixel sums of pass values (k, N, 3) for running estimates: (group_sums (N, groups,
+    3), square_sums (N, 3)); pass first_pass + j belongs to group (first_pass + j) % groups."""
+    group_sums = np.empty((values.shape[1], groups, 3))
+    for group in range(groups):
+        group_sums[:, group] = values[(group - first_pass) % groups::groups].sum(axis=0)
+    return group_sums, np.square(values).sum(axis=0)
+
+
+def _worker_start():
+    # The worker traces on its own: never through the parent's tracing pool
+    _RUN.scene.detach_workers()
+
+
+def _worker_round(task):
+    first_pass, passes, rows, groups = task
+    before = _RUN.scene.rays_traced
+    stats = pass_statistics(_RUN.values(first_pass, passes, rows), first_pass, groups)
+    return stats, _RUN.scene.rays_traced - before
+
+
+class ForkedPasses:
+    """A pool of `workers` forked processes evaluating rounds of passes of one render."""
+
+    def __init__(self, run, workers: int):
+        global _RUN
+        run.scene.commit()  # build the BVH in the parent: the workers inherit it
+        _RUN = run
+        try:
+            self._pool = multiprocessing.get_context("fork").Pool(workers, initializer=_worker_start)
+        finally:
+            _RUN = None
+        self.run, self.workers = run, workers
+
+    def statistics(self, first_pass, passes, rows, groups):
+        """`pass_statistics` of `rows`, split over the workers; adds their rays to the scene."""
+        chunks = [c for c in np.array_split(rows, self.workers) if c.size]
+        results = self._pool.map(_worker_round, [(first_pass, passes, c, groups) for c in chunks])
+        self.run.scene.rays_traced += sum(r[1] for r in results)
+        return (np.concatenate([r[0][0] for r in results]),
+                np.concatenate([r[0][1] for r in results]))
+
+    def close(self):
+        self._pool.terminate()
+        self._pool.join()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,158 @@
+"""The environment light: chi-square of its sampler, eval/pdf consistency, inversion, extremes."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from render_testing import load_hdr
+from relightcli.errors import RelightWarning
+from relightcli.io.envmap import direction_to_uv, texel_solid_angles
+from relightcli.render.environment import EnvironmentLight
+
+
+def _one_hot(height=16, row=5, col=9, value=100.0):
+    env = np.zeros((height, 2 * height, 3), np.float32)
+    env[row, col] = value
+    return env
+
+
+def _sun_and_sky(height=64):
+    env = np.full((height, 2 * height, 3), 0.5, np.float32)
+    env[10, 40] = 0.5e6
+    return env
+
+
+def _gradient(height=16):
+    v = (np.arange(height)[:, None, None] + 0.5) / height
+    return np.broadcast_to(1.0 + 3.0 * (1 - v), (height, 2 * height, 3)).astype(np.float32)
+
+
+def _real(height=None):
+    env = load_hdr("noon_grass_1k.hdr")
+    return env[::4, ::4].copy()  # 128 x 256: keeps the test fast, still a hard sun
+
+
+MAPS = {"one_hot": _one_hot, "constant": lambda: np.full((8, 16, 3), 2.0, np.float32),
+        "gradient": _gradient, "sun_and_sky": _sun_and_sky, "real_hdr": _real}
+
+
+def _expected_texel_probabilities(env):
+    energy = env.mean(axis=2).astype(np.float64) * texel_solid_angles(*env.shape[:2])
+    return energy / energy.sum()
+
+
+def _chi_square_pvalue(observed, expected):
+    small = expected < 5
+    obs = np.append(observed[~small], observed[small].sum())
+    exp = np.append(expected[~small], expected[small].sum())
+    keep = exp > 0
+    if np.any(obs[~keep] > 0):
+        return 0.0
+    if keep.sum() == 1:
+        return 1.0
+    return stats.chisquare(obs[keep], exp[keep] * obs[keep].sum() / exp[keep].sum()).pvalue
+
+
+@pytest.mark.parametrize("name", sorted(MAPS))
+def test_environment_sampler_chi_square(name):
+    env = MAPS[name]()
+    light = EnvironmentLight(env)
+    directions, _ = light.sample(np.random.default_rng(7).random((200_000, 2)))
+    u, v = direction_to_uv(directions)
+    height, width = env.shape[:2]
+    texel = np.clip((v * height).astype(int), 0, height - 1) * width + np.clip((u * width).astype(int), 0, width - 1)
+    counts = np.bincount(texel, minlength=height * width).astype(float)
+    expected = _expected_texel_probabilities(env).ravel() * directions.shape[0]
+    assert _chi_square_pvalue(counts, expected) > 1e-3
+
+
+@pytest.mark.parametrize("name", sorted(MAPS))
+def test_sample_weight_equals_eval_over_pdf(name):
+    light = EnvironmentLight(MAPS[name]())
+    u = np.random.default_rng(3).random((5000, 2))
+    directions, pdf, radiance = light.sample_radiance(u)
+    radiance_eval, pdf_eval = light.eval_pdf(directions)
+    np.testing.assert_allclose(radiance, light.eval(directions))
+    np.testing.assert_allclose(radiance_eval, radiance)
+    np.testing.assert_allclose(pdf_eval, pdf, rtol=1e-9)
+    np.testing.assert_allclose(light.pdf(directions), pdf, rtol=1e-9)
+    # The estimator of the total power E[L / pdf] = integral of L over the sphere
+    weight = radiance.mean(axis=1) / pdf
+    assert np.all(np.isfinite(weight)) and np.all(pdf > 0)
+
+
+@pytest.mark.parametrize("name", sorted(MAPS))
+def test_perfect_importance_sampling_gives_zero_variance_per_texel(name):
+    env = MAPS[name]()
+    light = EnvironmentLight(env)
+    directions, pdf, radiance = light.sample_radiance(np.random.default_rng(5).random((20_000, 2)))
+    # mean-RGB L / pdf is the map's total energy up to the sin(theta) change within a texel
+    total = light.total_energy
+    ratio = radiance.mean(axis=1) / pdf / total
+    height = env.shape[0]
+    assert np.mean(ratio) == pytest.approx(1.0, rel=2.0 / height)
+
+
+@pytest.mark.parametrize("name", sorted(MAPS))
+def test_environment_inversion_round_trip(name):
+    light = EnvironmentLight(MAPS[name]())
+    u = np.random.default_rng(11).random((2000, 2))
+    directions, _ = light.sample(u)
+    np.testing.assert_allclose(light.invert_sample(directions), u, atol=1e-6)
+
+
+def test_pdf_integrates_to_one_over_the_sphere():
+    light = EnvironmentLight(_gradient())
+    height, width = 256, 512
+    from relightcli.io.envmap import texel_directions
+
+    pdf = light.pdf(texel_directions(height, width))
+    assert np.sum(pdf * texel_solid_angles(height, width)) == pytest.approx(1.0, rel=1e-3)
+
+
+def test_plan_flags():
+    assert EnvironmentLight(np.zeros((4, 8, 3), np.float32)).is_black
+    assert EnvironmentLight(np.full((4, 8, 3), 3.0, np.float32)).is_constant
+    assert EnvironmentLight(_one_hot()).is_sun_only
+    sunny = EnvironmentLight(_sun_and_sky())
+    assert not sunny.is_sun_only and sunny.sun_fraction > 0.5
+
+
+def test_sun_and_sky_add_up_to_the_map():
+    light = EnvironmentLight(_sun_and_sky())
+    sun, sky = light.sun_and_sky()
+    np.testing.assert_array_equal(sun.radiance + sky.radiance, light.radiance)
+    assert sun.total_energy + sky.total_energy == pytest.approx(light.total_energy, rel=1e-9)
+
+
+EXTREMES = {
+    "black": lambda: np.zeros((8, 16, 3), np.float32),
+    "tiny_2x1": lambda: np.array([[[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]]], np.float32),
+    "single_texel": lambda: _one_hot(64, 0, 0, 1e30),
+    "sun_1e6": _sun_and_sky,
+    "pole_texel": lambda: _one_hot(8, 7, 15, 5.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXTREMES))
+def test_extreme_maps_sample_finite_values(name):
+    light = EnvironmentLight(EXTREMES[name]())
+    directions, pdf, radiance = light.sample_radiance(np.random.default_rng(0).random((4000, 2)))
+    assert np.all(np.isfinite(directions)) and np.all(np.isfinite(pdf)) and np.all(np.isfinite(radiance))
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-9)
+
+
+def test_nan_inf_negative_texels_are_zeroed_with_a_warning():
+    env = np.ones((4, 8, 3), np.float32)
+    env[0, 0, 0], env[1, 1, 1], env[2, 2, 2] = np.nan, np.inf, -1.0
+    with pytest.warns(RelightWarning):
+        light = EnvironmentLight(env)
+    assert np.all(np.isfinite(light.radiance)) and light.radiance.min() >= 0
+    assert light.radiance[0, 0, 0] == 0 and light.radiance[3, 3, 0] == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        EnvironmentLight(np.ones((4, 8, 3), np.float32))
