@@ -138,7 +138,7 @@ def stage_raytrace(frame: Frame, options, models: Models) -> None:
         geometry = render_pixel_geometry(scene, compose.CROP_RECT, (resolution, resolution))
         spp, target = sampling_effort(options)
         result = shade_environment(scene, geometry, models.light(frame.env), spp=spp, target_error=target,
-                                   seed=options.seed)
+                                   seed=options.seed, workers=options.threads)
     frame.coarse_shading = fill_uncovered(result.mean, geometry.mask, frame.crop_mask > 0.5)
     frame.shading = frame.coarse_shading * frame.crop_mask[..., None]
     frame.notes["raytrace"] = {

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from relightcli.errors import InputError, OutputError, RelightWarning, UsageError
 
-# Below this many estimated rays the tracing processes cost more to start than they save
+# Below this many estimated rays forking sampling workers costs more than it saves
 PARALLEL_MIN_RAYS = 1 << 21
 
 
@@ -75,16 +75,16 @@ def run(args, threads: int) -> dict:
         light = EnvironmentLight(env)
     width, height = args.res
     estimated_rays = width * height * (spp or 1024) * 2
-    parallel = threads if estimated_rays >= PARALLEL_MIN_RAYS else 1
+    workers = max(1, threads) if estimated_rays >= PARALLEL_MIN_RAYS else 1
     start = time.perf_counter()
-    with Scene.from_trimesh(mesh, threads=parallel) as scene:
+    with Scene.from_trimesh(mesh) as scene:
         rect = tuple(args.rect) if args.rect is not None else default_rect(scene)
         geometry = render_pixel_geometry(scene, rect, (width, height))
         result = shade_environment(
             scene, geometry, light, spp=spp or (1 << 16 if args.time_budget else 4096),
             target_error=args.target_error, time_budget=args.time_budget,
             strategy=args.strategy, bounces=args.bounces, albedo=args.albedo,
-            sampler=args.sampler, seed=args.seed)
+            sampler=args.sampler, seed=args.seed, workers=workers)
     seconds = time.perf_counter() - start
     mask = geometry.mask.astype(np.float32)
     write_image(outputs["shading"], result.mean, alpha=mask, overwrite=args.overwrite)

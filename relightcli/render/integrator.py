@@ -39,7 +39,7 @@ STRATEGIES = ("mis", "env", "cosine", "uniform")
 # Independent randomisations of the Sobol sequence per pixel (standard error from R means)
 RQMC_GROUPS = 4
 SAMPLERS = ("sobol", "independent")
-# Rays per vectorised round (bounds memory: ~100 bytes per ray in flight)
+# Rays per vectorised round and process (bounds memory: ~300 bytes per ray in flight)
 ROUND_RAYS = 1 << 19
 # Share of the energy in the brightest 0.1% of texels from which the sun is sampled apart
 SUN_SPLIT_FRACTION = 0.1
@@ -134,6 +134,8 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     height, width = geometry.mask.shape
     pixels = np.flatnonzero(geometry.mask.ravel())
     groups = RQMC_GROUPS if sampler == "sobol" else 1
+    if time_budget is not None and target_error is None:
+        min_spp = max(2, groups)  # a small first round measures the cost of a pass
     if sampler == "sobol":
         spp, min_spp = _round_up(spp, groups), _round_up(min_spp, groups)
     state = _State(pixels.size, groups)
@@ -244,7 +246,7 @@ class _Run:
         if self.sampler == "sobol":
             k = np.arange(first_pass, first_pass + passes)
             points = self.sobol[stream][k // RQMC_GROUPS][:, None, :]
-            u = points + self.shift[stream][k % RQMC_GROUPS][:, rows]
+            u = points + self.shift[stream][:, rows][k % RQMC_GROUPS]
             u -= u >= 1.0  # Cranley-Patterson rotation: (point + shift) mod 1
             return u.reshape(-1, dims)
         out = np.empty((passes, rows.size, dims))
@@ -277,15 +279,17 @@ def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, w
     """Run passes in rounds until every pixel is done, spp is reached or time is up."""
     if workers > 1:
         with ForkedPasses(run, workers) as pool:
-            _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start)
+            _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start,
+                    ROUND_RAYS * workers)
     else:
         def statistics(first_pass, passes, rows, groups):
             return pass_statistics(run.values(first_pass, passes, rows), first_pass, groups)
 
-        _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start)
+        _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start,
+                ROUND_RAYS)
 
 
-def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start):
+def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start, round_rays):
     """The sampling loop; statistics(first_pass, passes, rows, groups) evaluates a round."""
     adaptive = target_error is not None or time_budget is not None
     active = np.arange(state.count.size)
@@ -294,7 +298,7 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
     rays_per_pass = run.plan.rays_per_pass + (2 if run.bounces == 2 else 0)
     while active.size and done_passes < spp:
         passes = _round_passes(done_passes, spp, active.size, rays_per_pass, adaptive, min_spp,
-                               state, active, target_error)
+                               state, active, target_error, round_rays)
         passes = min(_round_up(passes, state.groups), spp - done_passes)
         if time_budget is not None and seconds_per_pass_pixel is not None:
             left = time_budget - (time.perf_counter() - start)
@@ -311,19 +315,20 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
 
 
 def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, state, active,
-                  target_error):
+                  target_error, round_rays):
     """Passes in the next round: a first round of min_spp when adaptive, then about as many as
-    the median active pixel still needs (at most doubling), within spp and the ray budget."""
-    cap = max(1, ROUND_RAYS // (rays_per_pass * n_active))
+    the median active pixel still needs, between half and all of what is done so far (so the
+    rounds, each with a fixed cost, grow geometrically), within spp and the ray budget."""
+    cap = max(1, round_rays // (rays_per_pass * n_active))
     if not adaptive:
         return int(min(spp - done, cap))
     if done == 0:
-        return int(min(min_spp, spp, cap) if target_error is not None else min(spp, cap, min_spp))
+        return int(min(min_spp, spp, cap))
     if target_error is None:
         return int(min(spp - done, cap, done))
     rel = state.relative_error()[active]
     need = np.median(done * ((rel / target_error) ** 2 - 1.0))
-    return int(np.clip(np.ceil(need), 1, min(done, spp - done, cap)))
+    return int(min(max(np.ceil(need), done // 2, 1), done, spp - done, cap))
 
 
 def _round_up(value, multiple):

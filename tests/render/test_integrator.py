@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from render_testing import merge, one_hot_map, quad
-from relightcli.io.envmap import texel_directions, texel_solid_angles, uv_to_direction
+from relightcli.io.envmap import uv_to_direction
 from relightcli.render.camera import default_rect, render_pixel_geometry
 from relightcli.render.environment import EnvironmentLight
 from relightcli.render.integrator import ambient_occlusion, shade_environment
@@ -297,6 +297,22 @@ def test_second_bounce_next_to_a_wall_matches_the_closed_form(albedo):
                                sampler="independent")
     expected = 0.5 + albedo / 4
     assert np.all(np.abs(result.mean[geometry.mask] - expected) <= 5 * result.stderr[geometry.mask] + 1e-3)
+
+
+def test_albedo_image_is_read_at_the_pixel_the_bounce_hits():
+    # Floor and wall seen from above: a camera-aligned albedo image that is 0.3 on the wall's
+    # column of pixels and 1.0 elsewhere must act like albedo 0.3 (only the wall reflects)
+    scene, _ = _floor_and_wall()
+    rect = (-0.4, 0.4, -0.4, 0.4)
+    geometry = render_pixel_geometry(scene, rect, (8, 8))
+    columns = -0.4 + (np.arange(8) + 0.5) * 0.1
+    image = np.ones((8, 8, 3))
+    image[:, np.abs(columns + 0.2) < 0.06] = 0.3  # the wall x = -0.2 projects into column 1
+    light = EnvironmentLight(np.ones((16, 32, 3), np.float32))
+    with_image = shade_environment(scene, geometry, light, spp=64, bounces=2, albedo=image, seed=3)
+    constant = shade_environment(scene, geometry, light, spp=64, bounces=2, albedo=0.3, seed=3)
+    right = geometry.mask & (columns[None, :] > -0.1)
+    np.testing.assert_allclose(with_image.mean[right], constant.mean[right], rtol=1e-6)
 
 
 # ------------------------------------------------------------------ ambient occlusion

@@ -6,7 +6,11 @@ primary rays, passed straight to `integrator.sample`, so no pixel filter differs
 
 Mitsuba's envmap convention: uv = (atan2(d.x, -d.z) / 2pi, acos(d.y) / pi) in its local frame
 (identity `to_world`), i.e. u is ours minus 1/2: its bitmap is ours rolled by W/2 columns.
-`test_envmap_mapping_one_hot` pins that before any comparison.
+`test_envmap_mapping_one_hot` pins that before any comparison. Mitsuba reads its bitmap
+bilinearly, we read texels as constant: the map is given to Mitsuba with every texel repeated
+4x4 and smoothed at the texel scale first (see `_smooth_at_texel_scale`), so that both read
+the same radiance; measured on the raw noon map the two readings of the few-texel sun differ
+by 4.7% relative RMSE (1.3% with the 4x4 repeat), all of it in penumbrae.
 
 Run with `pytest -m mitsuba tests/render/test_mitsuba.py` (needs `pip install mitsuba`; the
 LLVM variant needs Debian's libllvm19, found through DRJIT_LIBLLVM_PATH).

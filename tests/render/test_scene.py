@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from render_testing import merge, quad
+from render_testing import quad
 from relightcli.errors import InputError
 from relightcli.render.camera import default_rect, pixel_centres, render_pixel_geometry
 from relightcli.render.scene import Scene
