@@ -61,8 +61,9 @@ def add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
     sampling.add_argument("--target-error", type=_positive_float, metavar="E",
                           help="stop sampling at this median relative standard error (e.g. 0.02)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
-    parser.add_argument("--resolution", type=_positive_int, default=512, metavar="PX",
-                        help="working resolution of the square person crop (default 512, the paper's)")
+    parser.add_argument("--resolution", type=_positive_int, default=None, metavar="PX",
+                        help="working resolution of the square person crop (default: the resolution "
+                             "the shipped networks were trained at; 512, the paper's, when unknown)")
 
 
 def _positive_int(text: str) -> int:
@@ -137,8 +138,9 @@ def relight_parser() -> argparse.ArgumentParser:
                         help="with --engine ray: an existing cluster ('auto', 'ray://head:10001'); "
                              "default: start a local Ray instance")
     parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
-    parser.add_argument("--resolution", type=_positive_int, default=512, metavar="PX",
-                        help="working resolution of the square person crop (default 512, the paper's)")
+    parser.add_argument("--resolution", type=_positive_int, default=None, metavar="PX",
+                        help="working resolution of the square person crop (default: the resolution "
+                             "the shipped networks were trained at; 512, the paper's, when unknown)")
     parser.add_argument("--max-pixels", type=_positive_int, default=100_000_000, metavar="N",
                         help="refuse images larger than N pixels before decoding (default 100 MP)")
     add_common_arguments(parser)
@@ -225,7 +227,7 @@ def run_relight(args) -> int:
         mask_path=None if args.mask is None else Path(args.mask),
         rotate_deg=args.rotate, exposure_ev=args.exposure, spp=args.spp,
         target_error=args.target_error, seed=args.seed, threads=max(1, threads // workers),
-        background=args.background, max_pixels=args.max_pixels, resolution=args.resolution)
+        background=args.background, max_pixels=args.max_pixels, resolution=_resolution(args))
 
     worker = RelightWorker(env, options)
     if args.engine == "ray":
@@ -248,6 +250,14 @@ def run_relight(args) -> int:
     return batch.exit_code(reports)
 
 
+def _resolution(args) -> int:
+    if args.resolution is not None:
+        return args.resolution
+    from relightcli.nets.manifest import working_resolution
+
+    return working_resolution()
+
+
 def run_eval(args) -> int:
     from relightcli import evaluate
     from relightcli.pipeline import RelightOptions, predict_scene
@@ -255,7 +265,7 @@ def run_eval(args) -> int:
     threads = args.threads or default_threads()
     options = RelightOptions(
         outputs=("relit", "albedo", "shading"), method=args.method, spp=args.spp,
-        target_error=args.target_error, seed=args.seed, threads=threads, resolution=args.resolution)
+        target_error=args.target_error, seed=args.seed, threads=threads, resolution=_resolution(args))
     scenes = evaluate.find_scenes(args.dataset)
     progress = _Progress(len(scenes), enabled=sys.stderr.isatty() and not args.json)
     result = evaluate.evaluate(
