@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
 
@@ -32,10 +34,13 @@ def test_main_job_uses_files_shipped_in_examples():
     assert (REPO / "examples" / "LICENSES.md").is_file()
 
 
-def test_every_cli_option_is_documented():
-    from relightcli.cli import relight_parser
+@pytest.mark.parametrize("command", ["relight", "shade", "eval", "info"])
+def test_every_cli_option_is_documented(command):
+    from relightcli import cli
 
-    for action in relight_parser()._actions:
+    parser = {"relight": cli.relight_parser, "shade": cli.shade_parser, "eval": cli.eval_parser,
+              "info": cli.info_parser}[command]()
+    for action in parser._actions:
         for flag in action.option_strings:
             if flag.startswith("--") and flag not in ("--help", "--version"):
-                assert f"`{flag}" in README, f"{flag} is not documented in README.md"
+                assert f"`{flag}" in README, f"{command}: {flag} is not documented in README.md"

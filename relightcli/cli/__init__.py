@@ -43,15 +43,17 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def add_common_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options every command shares (defined once, so they cannot drift apart)."""
+def add_common_arguments(parser: argparse.ArgumentParser, *, writes: bool = True) -> None:
+    """Options every command shares (defined once, so they cannot drift apart). `writes`:
+    the command writes files, so it takes --overwrite."""
     parser.add_argument("--threads", type=_positive_int, default=None, metavar="N",
                         help="threads for ONNX Runtime, OpenCV, OpenImageIO and the ray tracer "
                              "(default: all cores available)")
     parser.add_argument("--json", action="store_true",
                         help="print a machine-readable report on stdout")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace existing outputs (default: refuse)")
+    if writes:
+        parser.add_argument("--overwrite", action="store_true",
+                            help="replace existing outputs (default: refuse)")
 
 
 def add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
@@ -149,7 +151,7 @@ def relight_parser() -> argparse.ArgumentParser:
 
 def info_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="relight info", description="Models found, ONNX Runtime providers, threads.")
-    add_common_arguments(parser)
+    add_common_arguments(parser, writes=False)
     return parser
 
 
@@ -165,7 +167,7 @@ def eval_parser() -> argparse.ArgumentParser:
     parser.add_argument("--use-gt-mask", action="store_true",
                         help="feed the ground-truth mask instead of predicting it (isolates the relighting)")
     add_sampling_arguments(parser)
-    add_common_arguments(parser)
+    add_common_arguments(parser, writes=False)
     return parser
 
 
