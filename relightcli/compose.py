@@ -14,10 +14,9 @@ import cv2
 import numpy as np
 
 from relightcli.errors import InputError
-from relightcli.io.images import linear_to_srgb, srgb_to_linear
+from relightcli.io.images import LUMINANCE, linear_to_srgb, srgb_to_linear
 
 CROP_RECT = (-1.0, 1.0, -1.0, 1.0)  # x0, x1, y0, y1 of the working crop
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 / sRGB primaries
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from relightcli.io.images import srgb_to_linear
+from relightcli.io.images import LUMINANCE, srgb_to_linear
 
 MONK_SKIN_TONES_SRGB = ("f6ede4", "f3e7db", "f7ead0", "eadaba", "d7bd96",
                         "a07e56", "825c43", "604134", "3a312a", "292420")
@@ -49,7 +49,7 @@ def skin_tone(t: float) -> np.ndarray:
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """Rec. 709 relative luminance of linear RGB (..., 3) -> (...)."""
-    return rgb @ np.array([0.2126, 0.7152, 0.0722], dtype=rgb.dtype)
+    return rgb @ LUMINANCE.astype(rgb.dtype)
 
 
 def smooth_noise(rng: np.random.Generator, size: int, octaves: tuple[int, ...] = (4, 8, 16, 32),

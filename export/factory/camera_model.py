@@ -18,9 +18,8 @@ import numpy as np
 
 from relightcli.errors import UsageError
 from relightcli.io.envmap import environment_view
-from relightcli.io.images import linear_to_srgb, srgb_to_linear
+from relightcli.io.images import LUMINANCE, linear_to_srgb, srgb_to_linear
 
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 # Auto-exposure: this percentile of the person's brightest channel is mapped to the key
 METERING_PERCENTILE = 95.0
 KEY_RANGE = (0.55, 1.0)
@@ -60,7 +59,7 @@ def sample_augmentation(rng: np.random.Generator, probability: float = 0.5) -> A
 
 def luminance(rgb) -> np.ndarray:
     """(..., 3) linear RGB -> (...) float32 Rec. 709 luminance."""
-    return np.asarray(rgb, dtype=np.float32) @ _LUMINANCE
+    return np.asarray(rgb, dtype=np.float32) @ LUMINANCE
 
 
 def auto_exposure(image, mask, key: float) -> float:

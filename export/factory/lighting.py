@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from relightcli.errors import InputError, UsageError
+from relightcli.io.images import LUMINANCE
 from relightcli.io.envmap import (
     direction_to_uv,
     load_envmap,
@@ -47,7 +48,6 @@ SKY_HEIGHT = 256
 SUN_TO_SKY = (1e3, 1e6)
 SUN_RADIUS_DEG = (0.27, 1.5)
 SUN_ELEVATION_DEG = (5.0, 80.0)
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def hdri_dir() -> Path:
@@ -140,7 +140,7 @@ def _sun_colour(elevation_deg: float) -> np.ndarray:
     """Linear RGB of the sun, unit luminance: reddish near the horizon, white high up."""
     t = np.clip(elevation_deg / 30.0, 0.0, 1.0)
     rgb = (1 - t) * np.array([1.0, 0.62, 0.35]) + t * np.array([1.0, 0.96, 0.9])
-    return rgb / (rgb @ _LUMINANCE)
+    return rgb / (rgb @ LUMINANCE)
 
 
 def _sky_radiance(directions, sun_dir, haze):
@@ -204,7 +204,7 @@ def procedural_sky(height: int = SKY_HEIGHT, *, sun_elevation_deg: float, sun_az
     directions = texel_directions(height, 2 * height)
     sky = _sky_radiance(directions, sun_dir, haze)
     upper = directions[..., 1] > 0
-    sky /= np.median(sky[upper] @ _LUMINANCE)
+    sky /= np.median(sky[upper] @ LUMINANCE)
     omega = texel_solid_angles(height, 2 * height)
     cover = _sun_coverage(height, sun_dir, math.radians(sun_radius_deg))
     sun = sun_to_sky * cover[..., None] * _sun_colour(sun_elevation_deg)

@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from relightcli.io.envmap import envmap_energy, gaussian_pyramid_downsample
+from relightcli.io.images import LUMINANCE
 from relightcli.render.camera import pixel_centres, render_pixel_geometry
 from relightcli.render.environment import EnvironmentLight
 from relightcli.render.integrator import ambient_occlusion, shade_environment
@@ -34,7 +35,6 @@ from .albedo import sample_texture
 from .scenes import SceneSpec, frame_rect
 
 LIGHT_HEIGHT = 16
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 # A face vertex is visible when it lies within this many metres of the front surface
 FACE_DEPTH_TOLERANCE = 0.015
 # ... and a face box is given when at least this share of the face vertices is visible
@@ -138,7 +138,7 @@ def face_box(face_points, rect, resolution: int, front_depth, mask) -> np.ndarra
 
 
 def _energy_luminance(env) -> float:
-    return float(envmap_energy(env) @ _LUMINANCE)
+    return float(envmap_energy(env) @ LUMINANCE)
 
 
 def sample_environments(spec: SceneSpec, settings: RenderSettings):

@@ -23,13 +23,12 @@ import numpy as np
 import scipy.sparse
 
 from relightcli.errors import InputError, RelightWarning, UsageError
-from relightcli.io.images import read_image
+from relightcli.io.images import LUMINANCE, read_image
 
 ENVMAP_MAX_PIXELS = 16384 * 8192
 _MAX_STOPS = 64
 _FIX_ASPECT = "use an equirectangular (latitude-longitude) map with width = 2 x height"
 # Rec. 709 / sRGB primaries: luminance of linear RGB
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def uv_to_direction(u, v):
@@ -390,7 +389,7 @@ def sun_share(env, top_fraction=0.001):
     for an all-black map.
     """
     env = np.asarray(env, dtype=np.float64)
-    energy = (env @ _LUMINANCE).ravel() * texel_solid_angles(*env.shape[:2]).ravel()
+    energy = (env @ LUMINANCE).ravel() * texel_solid_angles(*env.shape[:2]).ravel()
     total = energy.sum()
     if total <= 0:
         return 0.0

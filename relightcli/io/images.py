@@ -32,6 +32,10 @@ _OUTPUT_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"
 
 # --- sRGB transfer (IEC 61966-2-1) ------------------------------------------------------
 
+# Relative luminance of linear sRGB (Rec. 709 primaries): the one set of weights the project uses.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
 def srgb_to_linear(x):
     """Decode sRGB-encoded values to linear light.
 
