@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import tempfile
 import time
 import warnings
@@ -236,7 +237,19 @@ def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool) -> ItemRe
             report = ItemReport(str(item.input), error=f"{item.input}: out of memory", exit_code=EXIT_ITEMS_FAILED)
     report.warnings.extend(str(w.message) for w in caught if issubclass(w.category, RelightWarning))
     report.seconds.setdefault("total", round(time.perf_counter() - start, 4))
+    rss = resident_memory_mb()
+    if rss is not None:
+        report.details["worker_rss_mb"] = rss
     return report
+
+
+def resident_memory_mb() -> float | None:
+    """This process's resident memory now, in MB (Linux /proc; None elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+    return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
 
 
 def exit_code(reports: list[ItemReport]) -> int:

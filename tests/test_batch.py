@@ -91,3 +91,10 @@ def test_ray_engine_matches_local(tmp_path, capsys):
     assert [i["input"] for i in report_ray["items"]] == [i["input"] for i in report_local["items"]]
     bad = [i for i in report_ray["items"] if i["error"]]
     assert len(bad) == 1 and "z_bad0.png" in bad[0]["error"]
+
+
+def test_reports_carry_worker_memory(tmp_path, capsys):
+    folder = make_folder(tmp_path, 2, bad=0)
+    code, report = run(capsys, folder, tmp_path / "out", "--workers", "1")
+    assert code == 0
+    assert all(item["worker_rss_mb"] > 10 for item in report["items"])

@@ -1,0 +1,112 @@
+"""End-to-end time per stage and peak memory (issue "End to end"), with the shipped models.
+
+    python bench/bench_pipeline.py                      # 5 runs on the example, median per stage
+    python bench/bench_pipeline.py --resolution 512     # the paper's crop size
+    python bench/bench_pipeline.py --memory             # peak RSS relighting a 24-megapixel photo
+
+Prints a table and writes bench/results/pipeline.json. Targets (issue): median end-to-end time
+for a 512x512 crop <= 2.0 s on 2 cores; peak memory for a 24 MP photo <= 1.5 GB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+EXAMPLE = REPO / "examples" / "skier.jpg"
+MASK = REPO / "examples" / "skier_mask.png"
+HDR = REPO / "examples" / "noon_grass.hdr"
+
+
+def stage_times(runs: int, resolution: int, threads: int, spp, target_error) -> dict:
+    from relightcli.batch import ItemReport
+    from relightcli.io.envmap import load_envmap
+    from relightcli.io.images import read_image
+    from relightcli.pipeline import RelightOptions, run_stages
+    from relightcli.stages import Models
+
+    image = read_image(EXAMPLE)
+    mask = read_image(MASK, srgb=False).rgb[..., 0]
+    env = load_envmap(HDR)
+    options = RelightOptions(outputs=("relit",), resolution=resolution, threads=threads, spp=spp,
+                             target_error=target_error)
+    models = Models(threads)
+    run_stages(image.rgb, mask, env, options, ItemReport("warm-up"), models)  # load sessions once
+    rows = []
+    for seed in range(runs):
+        options.seed = seed
+        report = ItemReport(str(EXAMPLE))
+        start = time.perf_counter()
+        frame, _ = run_stages(image.rgb, mask, env, options, report, models)
+        report.seconds["total"] = time.perf_counter() - start
+        report.seconds["raytrace_rel_error"] = frame.notes["raytrace"]["rel_error"]
+        report.seconds["raytrace_mrays_per_s"] = frame.notes["raytrace"]["mrays_per_s"]
+        rows.append(report.seconds)
+    keys = rows[0].keys()
+    return {key: float(np.median([row[key] for row in rows])) for key in keys}
+
+
+def peak_memory_24mp(resolution: int, threads: int, spp) -> dict:
+    """Relight the example upscaled to 6000x4000 in a child process; its peak RSS."""
+    import cv2
+
+    from relightcli.io.images import read_image, write_image
+
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        photo = cv2.resize(read_image(EXAMPLE).rgb, (6000, 4000), interpolation=cv2.INTER_LINEAR)
+        mask = cv2.resize(read_image(MASK, srgb=False).rgb[..., 0], (6000, 4000), interpolation=cv2.INTER_NEAREST)
+        write_image(folder / "big.jpg", photo, quality=92)
+        write_image(folder / "big_mask.png", mask, bits=8, srgb=False)
+        command = [sys.executable, "-m", "relightcli", str(folder / "big.jpg"), "--mask", str(folder / "big_mask.png"),
+                   "--hdr", str(HDR), "-o", str(folder / "out.png"), "--resolution", str(resolution),
+                   "--threads", str(threads), "--json"] + (["--spp", str(spp)] if spp else [])
+        start = time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True, cwd=REPO, env=os.environ | {"PYTHONPATH": str(REPO)})
+        seconds = time.perf_counter() - start
+        if done.returncode != 0:
+            raise SystemExit(f"relight failed:\n{done.stderr[-2000:]}")
+    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return {"megapixels": 24.0, "peak_rss_mb": peak_kib / 1024.0, "seconds": seconds}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--resolution", type=int, default=None, help="default: the models' training resolution")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--spp", type=int, default=None)
+    parser.add_argument("--target-error", type=float, default=None)
+    parser.add_argument("--memory", action="store_true", help="also measure peak memory on a 24 MP photo")
+    args = parser.parse_args()
+    from relightcli.nets.manifest import working_resolution
+
+    resolution = args.resolution or working_resolution()
+    result = {"resolution": resolution, "threads": args.threads, "cpu": os.cpu_count(),
+              "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error)}
+    if args.memory:
+        result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp)
+    print(f"median over {args.runs} runs, {resolution}x{resolution} crop, {args.threads} threads")
+    for stage, seconds in result["median_seconds"].items():
+        print(f"  {stage:<22} {seconds:8.3f}")
+    if "memory" in result:
+        print(f"24 MP photo: peak RSS {result['memory']['peak_rss_mb']:.0f} MB, {result['memory']['seconds']:.1f} s")
+    out = REPO / "bench" / "results" / f"pipeline_{resolution}.json"
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
