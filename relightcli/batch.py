@@ -93,9 +93,14 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
     return found
 
 
-def plan_items(found, out: str | Path, layers: Iterable[str]) -> list[Item]:
+TURNTABLE_LAYERS = ("relit", "shading")  # the layers that change with the lighting
+
+
+def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0) -> list[Item]:
     """Decide every output path. `out` is a file when there is exactly one input and it has an
-    image extension; otherwise a directory. Refuses collisions and outputs that are inputs."""
+    image extension; otherwise a directory. With a turntable of N frames the lit layers become
+    N numbered files ('relit#000' -> photo_turn000.png). Refuses collisions and outputs that
+    are inputs."""
     out = Path(out)
     layers = list(layers)
     single_file = len(found) == 1 and out.suffix.lower() in IMAGE_EXTENSIONS and not out.is_dir()
@@ -112,9 +117,22 @@ def plan_items(found, out: str | Path, layers: Iterable[str]) -> list[Item]:
                 outputs[name] = base.parent / f"{base.name}{layer.suffix}{ext}"
             else:
                 outputs[name] = out / stem.parent / f"{stem.name}{layer.suffix}{layer.extension}"
+        if turntable:
+            outputs = _numbered_frames(outputs, turntable)
         items.append(Item(path, outputs))
     _refuse_collisions(items)
     return items
+
+
+def _numbered_frames(outputs: dict[str, Path], frames: int) -> dict[str, Path]:
+    numbered = {}
+    for name, path in outputs.items():
+        if name not in TURNTABLE_LAYERS:
+            numbered[name] = path
+            continue
+        for k in range(frames):
+            numbered[f"{name}#{k:03d}"] = path.with_name(f"{path.stem}_turn{k:03d}{path.suffix}")
+    return numbered
 
 
 def _refuse_collisions(items: list[Item]) -> None:

@@ -69,6 +69,7 @@ class RelightOptions:
     background: str = "keep"
     max_pixels: int = 100_000_000
     resolution: int = 512
+    turntable: int = 0  # frames with the environment turned 360/N apart; 0: one image
 
 
 @dataclass
@@ -126,7 +127,11 @@ class RelightWorker:
 
 
 def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemReport:
-    """Run the planned stages on one input and write its outputs. Raises project errors."""
+    """Run the planned stages on one input and write its outputs. Raises project errors.
+
+    With options.turntable = N, the lighting stages run N times under the environment turned
+    360/N degrees apart; outputs named 'relit#003' / 'shading#003' receive frame 3."""
+    from relightcli.io.envmap import rotate_envmap
     from relightcli.io.images import read_image
 
     report = ItemReport(str(item.input))
@@ -134,28 +139,57 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
         image = read_image(item.input, max_pixels=options.max_pixels)
         _check_usable_size(image, item.input)
         mask = _input_mask(image, options, item.input)
-    frame, plan = run_stages(image.rgb, mask, env, options, report, models)
+    frames = options.turntable or 1
+    lightings = [env] if frames == 1 else [rotate_envmap(env, 360.0 * k / frames) for k in range(frames)]
+
+    def write_lit_layers(k, frame):
+        with _timed(report, "write"):
+            for key, path in item.outputs.items():
+                name, _, index = key.partition("#")
+                if index and int(index) == k:
+                    write_layer(name, path, frame, options)
+                    report.outputs[key] = str(path)
+
+    frame, plan = run_stages(image.rgb, mask, env, options, report, models, lightings=lightings,
+                             on_lighting=write_lit_layers)
     report.details["plan"] = plan.as_dict()
     with _timed(report, "write"):
-        for name, path in item.outputs.items():
-            write_layer(name, path, frame, options)
-            report.outputs[name] = str(path)
+        for key, path in item.outputs.items():
+            if "#" not in key:
+                write_layer(key, path, frame, options)
+                report.outputs[key] = str(path)
     report.details["stages"] = frame.notes
     return report
 
 
-def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: ItemReport, models=None):
-    """Plan and run the stages on arrays. Returns (frame, plan)."""
-    from relightcli.stages import STAGES, Frame, Models
+def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: ItemReport, models=None,
+               *, lightings=None, on_lighting=None):
+    """Plan and run the stages on arrays. Returns (frame, plan).
+
+    lightings: environments to relight under in turn (default [env]); the stages that do not
+    depend on the lighting run once, the others once per environment, each followed by
+    on_lighting(index, frame). Stage times add up over the lightings."""
+    from relightcli.stages import LIGHTING_STAGES, STAGES, Frame, Models
 
     models = models or Models(options.threads)
     plan = plan_stages(options, has_alpha=mask is not None)
     frame = Frame(image=image, mask=mask, env=env)
     if mask is not None:
         frame.notes["mask"] = {"source": "--mask" if options.mask_path else "alpha channel"}
-    for stage in plan.run:
-        with _timed(report, stage):
-            STAGES[stage](frame, options, models)
+    try:
+        for stage in (s for s in plan.run if s not in LIGHTING_STAGES):
+            with _timed(report, stage):
+                STAGES[stage](frame, options, models)
+        for index, lighting in enumerate(lightings or [env]):
+            frame.env = lighting
+            for stage in (s for s in plan.run if s in LIGHTING_STAGES):
+                with _timed(report, stage):
+                    STAGES[stage](frame, options, models)
+            if on_lighting is not None:
+                on_lighting(index, frame)
+    finally:
+        if frame.scene is not None:
+            frame.scene.close()
     return frame, plan
 
 
@@ -236,9 +270,9 @@ def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
 
 @contextmanager
 def _timed(report: ItemReport, stage: str):
-    """Record a stage's wall time into the report, also when it raises."""
+    """Add a stage's wall time to the report (also when it raises; repeated stages add up)."""
     start = time.perf_counter()
     try:
         yield
     finally:
-        report.seconds[stage] = round(time.perf_counter() - start, 4)
+        report.seconds[stage] = round(report.seconds.get(stage, 0.0) + time.perf_counter() - start, 4)

@@ -30,6 +30,8 @@ class Frame:
     albedo: np.ndarray | None = None  # (R, R, 3)
     light: np.ndarray | None = None  # (16, 32, 3) estimated input lighting
     mesh: object | None = None  # trimesh.Trimesh in the crop camera frame
+    scene: object | None = None  # relightcli.render.scene.Scene of the mesh (closed by the pipeline)
+    hits: object | None = None  # relightcli.render.camera.PixelGeometry: what each crop pixel sees
     coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
     shading: np.ndarray | None = None  # (R, R, 3) final shading under env
     relit: np.ndarray | None = None  # (H, W, 3) full frame, linear, person only
@@ -124,22 +126,30 @@ def stage_reconstruct(frame: Frame, options, models: Models) -> None:
     frame.notes["reconstruct"] = {"vertices": int(len(frame.mesh.vertices)), "faces": int(len(frame.mesh.faces))}
 
 
+def build_scene(frame: Frame, options) -> None:
+    """The Embree scene and the camera's primary hits: built once per photo, whatever the
+    number of lightings (a turntable re-lights the same scene)."""
+    from relightcli.render.camera import render_pixel_geometry
+    from relightcli.render.scene import Scene
+
+    frame.scene = Scene.from_trimesh(frame.mesh, threads=options.threads)
+    frame.hits = render_pixel_geometry(frame.scene, compose.CROP_RECT, (options.resolution,) * 2)
+    frame.notes.setdefault("scene_builds", 0)
+    frame.notes["scene_builds"] += 1
+
+
 def stage_raytrace(frame: Frame, options, models: Models) -> None:
     """Coarse shading of the mesh under the target environment, pixel-aligned with the crop.
     Mask pixels the mesh does not cover (limbs thinner than two pixels) take the shading of the
     nearest covered pixel."""
-    from relightcli.render.camera import render_pixel_geometry
     from relightcli.render.integrator import shade_environment
-    from relightcli.render.scene import Scene
 
-    resolution = options.resolution
-    scene = Scene.from_trimesh(frame.mesh, threads=options.threads)
-    with scene:
-        geometry = render_pixel_geometry(scene, compose.CROP_RECT, (resolution, resolution))
-        spp, target = sampling_effort(options)
-        result = shade_environment(scene, geometry, models.light(frame.env), spp=spp, target_error=target,
-                                   seed=options.seed, workers=options.threads)
-    frame.coarse_shading = fill_uncovered(result.mean, geometry.mask, frame.crop_mask > 0.5)
+    if frame.scene is None:
+        build_scene(frame, options)
+    spp, target = sampling_effort(options)
+    result = shade_environment(frame.scene, frame.hits, models.light(frame.env), spp=spp, target_error=target,
+                               seed=options.seed, workers=options.threads)
+    frame.coarse_shading = fill_uncovered(result.mean, frame.hits.mask, frame.crop_mask > 0.5)
     frame.shading = frame.coarse_shading * frame.crop_mask[..., None]
     frame.notes["raytrace"] = {
         "spp_mean": float(result.passes[result.mask].mean()) if result.mask.any() else 0.0,
@@ -211,6 +221,10 @@ STAGES = {
     "refine": stage_refine,
     "compose": stage_compose,
 }
+
+
+# Stages whose result depends on the lighting: a turntable runs only these once per frame.
+LIGHTING_STAGES = ("raytrace", "sh_shading", "refine", "compose")
 
 
 # --- turning a frame into output layers ---------------------------------------------------

@@ -79,3 +79,17 @@ def test_methods_skip_what_they_do_not_need(random_models, tmp_path, capsys, mon
     assert "refine" not in item["plan"]["run"] and "ao" not in item["plan"]["run"]
     relit = read_image(tmp_path / "o.exr").rgb
     assert np.isfinite(relit).all() and relit.max() > 0
+
+
+def test_turntable_writes_numbered_frames_and_builds_the_scene_once(random_models, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("RELIGHT_MODELS_DIR", str(random_models))
+    code = main([str(EXAMPLES / "skier.jpg"), "--mask", str(EXAMPLES / "skier_mask.png"),
+                 "--hdr", str(EXAMPLES / "noon_grass.hdr"), "-o", str(tmp_path / "s.png"),
+                 "--outputs", "relit,albedo", "--turntable", "3", "--method", "raytrace-norefine",
+                 "--resolution", "48", "--spp", "4", "--threads", "1", "--json"])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, item
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s_albedo.png", "s_turn000.png", "s_turn001.png", "s_turn002.png"]
+    assert item["stages"]["scene_builds"] == 1
+    frames = [read_image(tmp_path / f"s_turn{k:03d}.png").rgb for k in range(3)]
+    assert not np.allclose(frames[0], frames[1])

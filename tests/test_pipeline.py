@@ -166,3 +166,22 @@ def test_uncovered_mask_pixels_take_the_nearest_shading():
     wanted = np.array([[True, True, False, True, True]])
     filled = fill_uncovered(shading, covered, wanted)
     np.testing.assert_array_equal(filled[0, :, 0], [1.0, 1.0, 0.0, 3.0, 3.0])
+
+
+def test_turntable_builds_the_scene_once_and_relights_each_frame():
+    from relightcli.io.envmap import rotate_envmap
+
+    image = np.full((64, 64, 3), 0.3, np.float32)
+    mask = np.zeros((64, 64), np.float32)
+    mask[8:56, 8:56] = 1.0
+    env = np.full((8, 16, 3), 0.2, np.float32)
+    env[2, 4] = 500.0  # a sun: each turn lights the ball from another side
+    lightings = [rotate_envmap(env, 90.0 * k) for k in range(4)]
+    options = RelightOptions(outputs=("shading",), method="raytrace-norefine", resolution=32, spp=4)
+    shadings = []
+    frame, _ = run_stages(image, mask, env, options, ItemReport("x"), SphereModels(), lightings=lightings,
+                          on_lighting=lambda k, f: shadings.append(f.shading.copy()))
+    assert frame.notes["scene_builds"] == 1
+    assert len(shadings) == 4
+    assert not np.allclose(shadings[0], shadings[1])  # the light moved
+    assert frame.scene is not None  # closed by run_stages, kept for inspection

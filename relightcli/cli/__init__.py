@@ -124,6 +124,9 @@ def relight_parser() -> argparse.ArgumentParser:
                         help="rotate the environment about +Y, counter-clockwise seen from above")
     parser.add_argument("--exposure", type=float, default=0.0, metavar="EV",
                         help="scale the environment by 2**EV")
+    parser.add_argument("--turntable", type=_positive_int, default=0, metavar="N",
+                        help="N frames with the environment turned 360/N degrees apart, written as "
+                             "numbered images (photo_turn000.png, ...); the networks and the mesh run once")
     parser.add_argument("--background", type=_background, default="keep", metavar="MODE",
                         help="keep (original photo), env (the environment seen by a camera), "
                              "transparent (RGBA), or a colour like '#808080'")
@@ -219,7 +222,7 @@ def run_relight(args) -> int:
     threads = args.threads or default_threads()
     exclude = [Path(args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
     found = batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude)
-    items = batch.plan_items(found, args.output, args.outputs)
+    items = batch.plan_items(found, args.output, args.outputs, turntable=args.turntable)
     batch.prepare_output_dirs(items)
     env, env_warnings = _load_environment(args)
     # One process per core by default; threads are split so workers x threads <= cores.
@@ -229,7 +232,8 @@ def run_relight(args) -> int:
         mask_path=None if args.mask is None else Path(args.mask),
         rotate_deg=args.rotate, exposure_ev=args.exposure, spp=args.spp,
         target_error=args.target_error, seed=args.seed, threads=max(1, threads // workers),
-        background=args.background, max_pixels=args.max_pixels, resolution=_resolution(args))
+        background=args.background, max_pixels=args.max_pixels, resolution=_resolution(args),
+        turntable=args.turntable)
 
     worker = RelightWorker(env, options)
     if args.engine == "ray":
