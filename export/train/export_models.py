@@ -34,6 +34,13 @@ def card_summary(card: dict) -> dict:
     return shorten(dict(card))
 
 
+def _samples_used(trainer) -> dict:
+    """Samples per split the trainer actually saw (the card's counts describe the generation
+    run that wrote it, which may have been stopped or resumed since)."""
+    dataset = trainer.dataset
+    return {split: len(dataset.ids(split)) for split in dataset.split_names}
+
+
 def export_trained(trainer, models_dir: str | Path, card: dict, run: dict) -> dict:
     """Export `trainer.net` to `<models_dir>/<family>.onnx`, check ONNX Runtime against torch,
     and insert its entry in `<models_dir>/manifest.json`. `run` is `Trainer.run`'s result.
@@ -46,7 +53,7 @@ def export_trained(trainer, models_dir: str | Path, card: dict, run: dict) -> di
     extra = _json_safe({
         "training": {"config": config.to_dict(), "step": run["step"], "elapsed_s": round(run["elapsed_s"], 1),
                      "stopped_by": run["stopped_by"], "run_dir": str(trainer.out)},
-        "training_data": card_summary(card),
+        "training_data": {**card_summary(card), "samples_used": _samples_used(trainer)},
         "metrics": {"split": "val", **run["metrics"]},
     })
     entry = export_onnx(net, path, height=size, width=size, extra=extra)
