@@ -110,7 +110,11 @@ def test_mask_output_from_alpha(tmp_path, env_path, capsys):
     assert set(item["seconds"]) >= {"load", "mask", "write", "total"}
 
 
-def test_relit_without_models_exits_3_and_writes_nothing(tmp_path, env_path, capsys):
+def test_relit_without_models_exits_3_and_writes_nothing(tmp_path, env_path, capsys, monkeypatch):
+    empty = tmp_path / "no_models"
+    empty.mkdir()
+    (empty / "manifest.json").write_text('{"version": 1, "models": {}}')
+    monkeypatch.setenv("RELIGHT_MODELS_DIR", str(empty))
     photo = rgba_photo(tmp_path / "a.png")
     out = tmp_path / "out.png"
     code, report = run_json(capsys, [str(photo), "--hdr", str(env_path), "-o", str(out)])
