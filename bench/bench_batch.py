@@ -6,7 +6,7 @@ pool and on Ray, and memory per worker / growth over a long batch.
     python bench/bench_batch.py --images 200 --growth       # RSS of one worker over 200 images
 
 Inputs are copies of the shipped example (different seeds would not change the cost). Prints a
-table and writes bench/results/batch.json. Target (issue): >= 30 images/min with the pool on
+table and writes bench/results/batch_<modes>.json. Target (issue): >= 30 images/min with the pool on
 2 cores for 512x512 crops.
 """
 
@@ -88,7 +88,7 @@ def main() -> None:
             results[name] = run_batch(inputs, folder / name, extra + flags)
             print(f"{name:<11} {results[name]['images']:4d} images  {results[name]['seconds']:7.1f} s  "
                   f"{results[name]['images_per_min']:6.2f} images/min  peak RSS {results[name]['peak_rss_mb_any_process']:.0f} MB")
-    out = REPO / "bench" / "results" / "batch.json"
+    out = REPO / "bench" / "results" / f"batch_{'_'.join(results)}.json"  # one file per set of modes
     out.write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {out}")
 
