@@ -75,3 +75,19 @@ def one_hot_map(height, row, col, value):
     env = np.zeros((height, 2 * height, 3), np.float32)
     env[row, col] = value
     return env
+
+
+def chi_square_pvalue(observed, expected):
+    """Chi-square p-value, cells with expected < 5 merged into one (pbrt's practice)."""
+    from scipy import stats
+
+    observed, expected = np.ravel(observed).astype(float), np.ravel(expected).astype(float)
+    small = expected < 5
+    obs = np.append(observed[~small], observed[small].sum())
+    exp = np.append(expected[~small], expected[small].sum())
+    keep = exp > 0
+    if np.any(obs[~keep] > 0):
+        return 0.0
+    if keep.sum() == 1:  # one possible cell: the test is that nothing fell elsewhere
+        return 1.0
+    return stats.chisquare(obs[keep], exp[keep] * obs[keep].sum() / exp[keep].sum()).pvalue

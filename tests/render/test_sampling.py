@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import stats
 
 from relightcli.render import sampling as s
+from render_testing import chi_square_pvalue
 
 RNG_SEED = 1234
 
@@ -15,18 +15,6 @@ def _uniforms(n, k=2, seed=RNG_SEED):
     return np.random.default_rng(seed).random((n, k))
 
 
-def _chi_square_pvalue(observed, expected):
-    """Chi-square p-value, cells with expected < 5 merged into one (pbrt's practice)."""
-    observed, expected = np.ravel(observed).astype(float), np.ravel(expected).astype(float)
-    small = expected < 5
-    obs = np.append(observed[~small], observed[small].sum())
-    exp = np.append(expected[~small], expected[small].sum())
-    keep = exp > 0
-    if np.any(obs[~keep] > 0):
-        return 0.0
-    if keep.sum() == 1:  # one possible cell: the test is that nothing fell elsewhere
-        return 1.0
-    return stats.chisquare(obs[keep], exp[keep] * obs[keep].sum() / exp[keep].sum()).pvalue
 
 
 # ------------------------------------------------------------------ cosine hemisphere
@@ -53,7 +41,7 @@ def test_cosine_hemisphere_chi_square():
     w = s.sample_cosine_hemisphere(_uniforms(200_000))
     # Under the cosine density, cos^2(theta) is uniform on [0, 1]
     counts, _ = np.histogram(w[:, 2] ** 2, bins=20, range=(0, 1))
-    assert _chi_square_pvalue(counts, np.full(20, w.shape[0] / 20)) > 1e-3
+    assert chi_square_pvalue(counts, np.full(20, w.shape[0] / 20)) > 1e-3
 
 
 # ------------------------------------------------------------------ uniform sphere
@@ -67,7 +55,7 @@ def test_uniform_sphere_chi_square():
     # Archimedes: z is uniform on [-1, 1]; phi is uniform
     counts, _, _ = np.histogram2d(w[:, 2], np.arctan2(w[:, 1], w[:, 0]), bins=(10, 12),
                                range=((-1, 1), (-np.pi, np.pi)))
-    assert _chi_square_pvalue(counts, np.full(120, w.shape[0] / 120)) > 1e-3
+    assert chi_square_pvalue(counts, np.full(120, w.shape[0] / 120)) > 1e-3
     np.testing.assert_allclose(s.uniform_sphere_pdf(w), 1 / (4 * np.pi))
 
 
@@ -89,7 +77,7 @@ def test_piecewise_1d_chi_square(name):
     expected = func / func.sum() if func.sum() > 0 else np.full(func.size, 1 / func.size)
     counts = np.bincount(offset, minlength=func.size)
     assert np.all(counts[expected == 0] == 0)
-    assert _chi_square_pvalue(counts, expected * x.size) > 1e-3
+    assert chi_square_pvalue(counts, expected * x.size) > 1e-3
     np.testing.assert_allclose(pdf, s.piecewise_constant_1d_pdf(dist, x))
     assert np.all((x >= 0) & (x < 1)) and np.all(pdf > 0)
 
@@ -126,7 +114,7 @@ def test_piecewise_2d_chi_square(name):
     nv, nu = func.shape
     cell = (xy[:, 1] * nv).astype(int) * nu + (xy[:, 0] * nu).astype(int)
     counts = np.bincount(cell, minlength=func.size)
-    assert _chi_square_pvalue(counts, func.ravel() / func.sum() * xy.shape[0]) > 1e-3
+    assert chi_square_pvalue(counts, func.ravel() / func.sum() * xy.shape[0]) > 1e-3
     np.testing.assert_allclose(pdf, s.piecewise_constant_2d_pdf(dist, xy))
 
 
