@@ -22,9 +22,9 @@ from relightcli.render.sampling import (
 from relightcli.render.scene import Hits, Scene, orient_normals
 
 # Uniform dimensions each strategy consumes per sample
-DIMENSIONS = {"mis": 4, "env": 2, "cosine": 2, "uniform": 2}
+DIMENSIONS = {"mis": 4, "mis-cv": 4, "env": 2, "cosine": 2, "uniform": 2}
 BOUNCE_DIMENSIONS = 4
-RAYS_PER_SAMPLE = {"mis": 2, "env": 1, "cosine": 1, "uniform": 1}
+RAYS_PER_SAMPLE = {"mis": 2, "mis-cv": 2, "env": 1, "cosine": 1, "uniform": 1}
 
 
 def dot(a, b):
@@ -68,12 +68,24 @@ def visible(scene: Scene, origins, g, directions, active, max_distance=None):
     return result
 
 
-def direct_lighting(scene, light: EnvironmentLight, points, n, g, u, strategy, max_distance=None):
+def direct_lighting(scene, light: EnvironmentLight, points, n, g, u, strategy, max_distance=None,
+                    unoccluded=None):
     """One-sample (two for MIS) estimate of the direct shading (N, 3) float64.
 
     mis: balance heuristic over one environment and one cosine sample,
     sum_i f(w_i) V(w_i) / (p_env(w_i) + p_cos(w_i)), f = L max(0, n.w) / pi.
+    mis-cv: the unoccluded shading as a control variate: `unoccluded` (N, 3) (the light's
+    `irradiance(n)`) minus the MIS estimate of what occluders take away, f (1 - V). Where
+    nothing is in the way this is exact; noise comes only from the occluded directions.
     """
+    if strategy == "mis-cv":
+        return unoccluded + _direct(scene, light, points, n, g, u, "mis", max_distance,
+                                    complement=True)
+    return _direct(scene, light, points, n, g, u, strategy, max_distance, complement=False)
+
+
+def _direct(scene, light, points, n, g, u, strategy, max_distance, complement):
+    """`direct_lighting` for the plain strategies; complement: estimate -f (1 - V) instead."""
     if strategy == "mis":
         w_env, pdf_env, radiance_env = light.sample_radiance(u[:, 0:2])
         w_cos = cosine_directions(n, u[:, 2:4])
@@ -86,7 +98,7 @@ def direct_lighting(scene, light: EnvironmentLight, points, n, g, u, strategy, m
         radiance = np.concatenate([radiance_env, radiance_cos])
         values = _unoccluded_contribution(scene, np.concatenate([points] * 2),
                                           np.concatenate([g] * 2), directions, cosine, pdf,
-                                          radiance, max_distance)
+                                          radiance, max_distance, complement)
         return values[: points.shape[0]] + values[points.shape[0]:]
     if strategy == "env":
         directions, pdf, radiance = light.sample_radiance(u[:, 0:2])
@@ -104,17 +116,17 @@ def direct_lighting(scene, light: EnvironmentLight, points, n, g, u, strategy, m
     else:
         raise ValueError(f"unknown strategy {strategy!r}")
     return _unoccluded_contribution(scene, points, g, directions, cosine, pdf, radiance,
-                                    max_distance)
+                                    max_distance, complement)
 
 
 def _unoccluded_contribution(scene, points, g, directions, cosine, pdf, radiance,
-                             max_distance):
+                             max_distance, complement=False):
     """f(w) V(w) / pdf per row, f = L max(0, cos) / pi: (N, 3) float64; zero where f or
-    the pdf is zero, and no ray is traced there."""
+    the pdf is zero, and no ray is traced there. complement: -f(w) (1 - V(w)) / pdf."""
     weight = np.where(pdf > 0, np.maximum(cosine, 0.0) * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
     lit = (radiance[:, 0] > 0) | (radiance[:, 1] > 0) | (radiance[:, 2] > 0)
     v = visible(scene, points, g, directions, (weight > 0) & lit, max_distance)
-    return radiance.astype(np.float64) * (weight * v)[:, None]
+    return radiance.astype(np.float64) * (weight * (v - 1.0 if complement else v))[:, None]
 
 
 def indirect_lighting(scene, light, points, n, g, u, albedo_at):

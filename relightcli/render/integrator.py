@@ -89,12 +89,14 @@ class LightingPlan:
         return sum(RAYS_PER_SAMPLE[strategy] for _, strategy in self.terms)
 
 
-def plan_lighting(light: EnvironmentLight, requested: str) -> LightingPlan:
+def plan_lighting(light: EnvironmentLight, requested: str, control_variate: bool = True) -> LightingPlan:
     """What to run. "none" for a black map. "mis" is planned: cosine sampling under a constant
     map (perfect importance sampling), environment sampling when one sun disc holds the
     energy (cosine samples would almost never find it), and when a sun holds a good share
     of it, the sun sampled on its own plus MIS on the rest ("sun+mis"), so that choosing
-    between sun and sky adds no variance. Other strategies run as asked."""
+    between sun and sky adds no variance. With control_variate, the MIS term estimates only
+    what occluders take away from the tabulated unoccluded shading ("mis-cv", see
+    `direct_lighting`): exact where nothing is in the way. Other strategies run as asked."""
     if requested not in STRATEGIES:
         raise UsageError(f"unknown strategy {requested!r}", fix=f"use one of {', '.join(STRATEGIES)}")
     if light.is_black:
@@ -105,10 +107,11 @@ def plan_lighting(light: EnvironmentLight, requested: str) -> LightingPlan:
         return LightingPlan("cosine", light, ((light, "cosine"),))
     if light.is_sun_only:
         return LightingPlan("env", light, ((light, "env"),))
+    mis = "mis-cv" if control_variate else "mis"
     if light.sun_fraction >= SUN_SPLIT_FRACTION:
         sun, sky = light.sun_and_sky()
-        return LightingPlan("sun+mis", light, ((sun, "env"), (sky, "mis")))
-    return LightingPlan("mis", light, ((light, "mis"),))
+        return LightingPlan(f"sun+{mis}", light, ((sun, "env"), (sky, mis)))
+    return LightingPlan(mis, light, ((light, mis),))
 
 
 def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentLight, *,
@@ -116,7 +119,7 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
                       time_budget: float | None = None, strategy: str = "mis",
                       bounces: int = 1, albedo=1.0, sampler: str = "sobol", seed: int = 0,
                       min_spp: int = 16, max_distance: float | None = None,
-                      workers: int = 1) -> ShadingResult:
+                      workers: int = 1, control_variate: bool = True) -> ShadingResult:
     """Shading (DESIGN.md units) of every masked pixel under `light`.
 
     spp: passes per pixel, or the cap when target_error / time_budget are given (rounded up
@@ -126,11 +129,12 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     bounces: 1 (direct) or 2 (plus one diffuse interreflection with `albedo`, a float or an
     (H, W, 3) image aligned with the camera). max_distance: occluders farther than this
     (local units) are ignored. workers: processes sampling in parallel (forked per render;
-    worth it from about a second of work).
+    worth it from about a second of work). control_variate: see `plan_lighting` (off only
+    to measure what it brings).
     """
     start = time.perf_counter()
     _check_options(spp, target_error, time_budget, bounces, sampler, min_spp)
-    plan = plan_lighting(light, strategy)
+    plan = plan_lighting(light, strategy, control_variate)
     height, width = geometry.mask.shape
     pixels = np.flatnonzero(geometry.mask.ravel())
     groups = RQMC_GROUPS if sampler == "sobol" else 1
@@ -148,6 +152,9 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     else:
         rays = 0
     mean, stderr = state.estimates()
+    # A control variate can undershoot a dim, mostly occluded pixel at low sample counts;
+    # shading is never negative, so clamping there only moves the estimate closer
+    mean = np.maximum(mean, 0.0)
     out_mean = np.zeros((height * width, 3), np.float32)
     out_err = np.zeros((height * width, 3), np.float32)
     out_passes = np.zeros(height * width, np.int32)
@@ -225,6 +232,9 @@ class _Run:
         self.geometric = geometry.geometric_normal.reshape(-1, 3)[pixels].astype(np.float64)
         self.origins = ray_origins(scene, points, self.geometric)
         self.albedo_at = _albedo_lookup(albedo, geometry, scene)
+        # Tabulated unoccluded shading for the control-variate terms, once per pixel
+        self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
+                           for light, strategy in plan.terms]
         self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
         # Separate streams for direct light and the bounce: adding the bounce leaves the
         # direct-light samples as they were
@@ -263,10 +273,11 @@ class _Run:
         p, n, g = self.origins[tile], self.normals[tile], self.geometric[tile]
         value = np.zeros((tile.size, 3))
         d = 0
-        for light, strategy in self.plan.terms:
+        for (light, strategy), unoccluded in zip(self.plan.terms, self.unoccluded):
             k = DIMENSIONS[strategy]
             value += direct_lighting(self.scene, light, p, n, g, u[:, d:d + k], strategy,
-                                     self.max_distance)
+                                     self.max_distance,
+                                     None if unoccluded is None else unoccluded[tile])
             d += k
         if self.bounces == 2:
             value += indirect_lighting(self.scene, self.plan.light, p, n, g,

@@ -241,7 +241,7 @@ def test_sun_only_map_uses_one_ray_per_sample():
 def test_sunny_map_samples_sun_and_sky_apart():
     scene = _sphere_scene()
     result = shade_environment(scene, _sphere_geometry(scene), EnvironmentLight(_sun_and_sky_map()), spp=4)
-    assert result.strategy == "sun+mis"
+    assert result.strategy == "sun+mis-cv"
 
 
 # ------------------------------------------------------------------ robustness
