@@ -51,9 +51,8 @@ def direction_to_uv(d):
     float64, u in [0, 1), v in [0, 1].
     """
     d = np.asarray(d, dtype=np.float64)
-    norm = np.linalg.norm(d, axis=-1)
-    y = np.clip(d[..., 1] / np.where(norm > 0, norm, 1.0), -1.0, 1.0)
-    v = np.arccos(y) / np.pi
+    # theta = atan2(|(x, z)|, y): accurate near the poles, where arccos(y) loses digits
+    v = np.arctan2(np.hypot(d[..., 0], d[..., 2]), d[..., 1]) / np.pi
     # phi = atan2(x, -z): x = sin(theta) sin(phi), -z = sin(theta) cos(phi)
     u = np.arctan2(d[..., 0], -d[..., 2]) / (2.0 * np.pi) + 0.5
     u = np.where(u >= 1.0, u - 1.0, u)

@@ -19,12 +19,7 @@ from relightcli.io.envmap import (
     texel_solid_angles,
     uv_to_direction,
 )
-from relightcli.render.sampling import (
-    build_piecewise_constant_2d,
-    invert_piecewise_constant_2d_sample,
-    piecewise_constant_2d_pdf,
-    sample_piecewise_constant_2d,
-)
+from relightcli.render.sampling import search_cdf
 
 # Share of the energy in the brightest 0.1% of texels above which a map is "one sun disc"
 SUN_ENERGY_FRACTION = 0.999
@@ -59,7 +54,9 @@ class EnvironmentLight:
 
     radiance: (H, W, 3) linear RGB. The distribution over texel coordinates (u, v) folds in the
     texel solid angle (exact per-row, proportional to sin(theta)); `pdf` converts back to
-    solid angle by dividing by 2 pi^2 sin(theta).
+    solid angle by dividing by 2 pi^2 sin(theta). Sampling inverts one cdf over the lit
+    texels in row-major order (u[0] picks the texel and its column offset, u[1] the row
+    offset): one search per sample, over only the sun's texels for a sun.
     """
 
     def __init__(self, radiance):
@@ -67,8 +64,15 @@ class EnvironmentLight:
         height, width, _ = self.radiance.shape
         energy = self.radiance.mean(axis=2).astype(np.float64) * texel_solid_angles(height, width)
         self.total_energy = float(energy.sum())
-        self.distribution = build_piecewise_constant_2d(energy)
         self.is_black = self.total_energy <= 0.0
+        if self.is_black:
+            energy = np.ones_like(energy)  # sampling stays defined: uniform over the texels
+        # Density over (u, v) in [0, 1)^2 per texel, and the cdf over the lit texels
+        self.texel_pdf_uv = energy / energy.mean()
+        self._lit = np.flatnonzero(energy.ravel() > 0)
+        cdf = np.cumsum(energy.ravel()[self._lit])
+        self._cdf = np.concatenate([[0.0], cdf / cdf[-1]])
+        self._cdf[-1] = 1.0
         flat = self.radiance.reshape(-1, 3)
         spread = flat.max(axis=0) - flat.min(axis=0)
         self.is_constant = bool(np.all(spread <= CONSTANT_TOLERANCE * np.maximum(flat.max(axis=0), 1e-30)))
@@ -131,28 +135,40 @@ class EnvironmentLight:
     def sample_radiance(self, u):
         """`sample`, plus the radiance (..., 3) float32 from each sampled direction (read
         from the sampled texel, no second lookup)."""
-        uv, pdf_uv = sample_piecewise_constant_2d(self.distribution, u)
-        directions = uv_to_direction(uv[..., 0], uv[..., 1])
-        radiance = self.radiance[self._row(uv[..., 1]), self._col(uv[..., 0])]
-        return directions, _uv_pdf_to_solid_angle(pdf_uv, uv[..., 1]), radiance
+        u = np.asarray(u, dtype=np.float64)
+        height, width, _ = self.radiance.shape
+        u0 = np.minimum(u[..., 0], np.nextafter(1.0, 0.0))
+        k = np.clip(search_cdf(self._cdf, u0), 0, self._lit.size - 1)
+        lo = self._cdf[k]
+        span = self._cdf[k + 1] - lo
+        offset = np.clip((u0 - lo) / np.where(span > 0, span, 1.0), 0.0, 1.0)
+        row, col = np.divmod(self._lit[k], width)
+        x = np.minimum((col + offset) / width, np.nextafter(1.0, 0.0))
+        y = np.minimum((row + u[..., 1]) / height, np.nextafter(1.0, 0.0))
+        directions = uv_to_direction(x, y)
+        pdf = _uv_pdf_to_solid_angle(self.texel_pdf_uv[row, col], y)
+        return directions, pdf, self.radiance[row, col]
 
     def eval_pdf(self, directions):
         """(`eval`, `pdf`) of unit directions (..., 3) with a single direction lookup."""
         u, v = direction_to_uv(directions)
         row, col = self._row(v), self._col(u)
-        pdf_uv = self.distribution.func[row, col] / self.distribution.marginal.integral
-        return self.radiance[row, col], _uv_pdf_to_solid_angle(pdf_uv, v)
+        return self.radiance[row, col], _uv_pdf_to_solid_angle(self.texel_pdf_uv[row, col], v)
 
     def pdf(self, directions) -> np.ndarray:
         """Solid-angle pdf (...) float64 of `sample` producing unit directions (..., 3)."""
         u, v = direction_to_uv(directions)
-        pdf_uv = piecewise_constant_2d_pdf(self.distribution, np.stack([u, v], axis=-1))
-        return _uv_pdf_to_solid_angle(pdf_uv, v)
+        return _uv_pdf_to_solid_angle(self.texel_pdf_uv[self._row(v), self._col(u)], v)
 
     def invert_sample(self, directions) -> np.ndarray:
         """The u (..., 2) that `sample` maps to unit directions (..., 3)."""
         u, v = direction_to_uv(directions)
-        return invert_piecewise_constant_2d_sample(self.distribution, np.stack([u, v], axis=-1))
+        height, width, _ = self.radiance.shape
+        row, col = self._row(v), self._col(u)
+        k = np.clip(np.searchsorted(self._lit, row * width + col), 0, self._lit.size - 1)
+        offset = np.clip(u * width - col, 0.0, 1.0)
+        u0 = self._cdf[k] + offset * (self._cdf[k + 1] - self._cdf[k])
+        return np.stack([u0, np.clip(v * height - row, 0.0, 1.0)], axis=-1)
 
     def _row(self, v):
         height = self.radiance.shape[0]

@@ -32,24 +32,25 @@ def dot(a, b):
     return np.einsum("ij,ij->i", a, b)
 
 
-def orthonormal_frame(n):
-    """Tangent frames (N, 3, 3) float64 whose third row is the unit normal n (N, 3).
+def cosine_directions(n, u):
+    """Cosine-weighted world directions (N, 3) about unit normals n (N, 3), u (N, 2).
 
-    Branchless construction of Duff et al. 2017 (pbrt's CoordinateSystem).
+    `sample_cosine_hemisphere` in the tangent frame (t, s, n) of Duff et al. 2017 (pbrt's
+    CoordinateSystem, branchless), written out per component: no (N, 3, 3) frames.
     """
     n = np.asarray(n, dtype=np.float64)
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
-    s = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
-    return np.stack([t, s, n], axis=1)
-
-
-def cosine_directions(n, u):
-    """Cosine-weighted world directions (N, 3) about unit normals n (N, 3), u (N, 2)."""
     local = sample_cosine_hemisphere(u)
-    return np.einsum("nk,nkj->nj", local, orthonormal_frame(n))
+    x, y, z = local[:, 0], local[:, 1], local[:, 2]
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+    sign = np.where(nz >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    out = np.empty_like(n)
+    # t = (1 + sign nx^2 a, sign b, -sign nx), s = (b, sign + ny^2 a, -ny)
+    out[:, 0] = x * (1.0 + sign * nx * nx * a) + y * b + z * nx
+    out[:, 1] = x * (sign * b) + y * (sign + ny * ny * a) + z * ny
+    out[:, 2] = -x * (sign * nx) - y * ny + z * nz
+    return out
 
 
 def ray_origins(scene: Scene, points, g):
@@ -87,19 +88,17 @@ def direct_lighting(scene, light: EnvironmentLight, points, n, g, u, strategy, m
 def _direct(scene, light, points, n, g, u, strategy, max_distance, complement):
     """`direct_lighting` for the plain strategies; complement: estimate -f (1 - V) instead."""
     if strategy == "mis":
+        # Two shadow-ray sets, one per technique; each weighted by the summed pdfs
         w_env, pdf_env, radiance_env = light.sample_radiance(u[:, 0:2])
         w_cos = cosine_directions(n, u[:, 2:4])
         radiance_cos, pdf_env_cos = light.eval_pdf(w_cos)
         cos_env, cos_cos = dot(n, w_env), dot(n, w_cos)
-        directions = np.concatenate([w_env, w_cos])
-        cosine = np.concatenate([cos_env, cos_cos])
-        pdf = np.concatenate([pdf_env + cosine_hemisphere_pdf(cos_env),
-                              pdf_env_cos + cosine_hemisphere_pdf(cos_cos)])
-        radiance = np.concatenate([radiance_env, radiance_cos])
-        values = _unoccluded_contribution(scene, np.concatenate([points] * 2),
-                                          np.concatenate([g] * 2), directions, cosine, pdf,
-                                          radiance, max_distance, complement)
-        return values[: points.shape[0]] + values[points.shape[0]:]
+        from_env = _unoccluded_contribution(
+            scene, points, g, w_env, cos_env, pdf_env + cosine_hemisphere_pdf(cos_env),
+            radiance_env, max_distance, complement)
+        return from_env + _unoccluded_contribution(
+            scene, points, g, w_cos, cos_cos, pdf_env_cos + cosine_hemisphere_pdf(cos_cos),
+            radiance_cos, max_distance, complement)
     if strategy == "env":
         directions, pdf, radiance = light.sample_radiance(u[:, 0:2])
         cosine = dot(n, directions)
