@@ -183,12 +183,12 @@ def _irradiance_table(radiance, nodes, texel_rows):
     """(nodes + 1, 2 texel_rows, 3) float64 unoccluded shading at normals on the node grid
     u = j / (2 texel_rows), v = i / nodes (rows 0 and `nodes` are the poles).
 
-    The map is area-resampled to texel_rows x 2 texel_rows. Turning a normal about the pole
+    The map is area-resampled to texel_rows x 2 texel_rows (up or down). Turning a normal about the pole
     axis turns the clamped cosine with it, so each (normal row, texel row) pair is a circular
     correlation along u, done with FFTs; the clamped cosine is integrated exactly across each
     texel column (the terminator cuts through columns), sampled at the texel row's centre.
     """
-    rows = min(texel_rows, radiance.shape[0])
+    rows = texel_rows  # small maps are resampled up (in blocks): the quadrature needs the rows
     width = 2 * rows
     coarse = resample_envmap(radiance, rows).astype(np.float64)  # (rows, width, 3)
     solid = texel_solid_angles(rows, width)[:, 0] / np.pi  # (rows,) per texel, over pi
