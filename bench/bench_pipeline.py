@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -74,12 +73,24 @@ def peak_memory_24mp(resolution: int, threads: int, spp) -> dict:
                    "--hdr", str(HDR), "-o", str(folder / "out.png"), "--resolution", str(resolution),
                    "--threads", str(threads), "--json"] + (["--spp", str(spp)] if spp else [])
         start = time.perf_counter()
-        done = subprocess.run(command, capture_output=True, text=True, cwd=REPO, env=os.environ | {"PYTHONPATH": str(REPO)})
+        done = subprocess.run(_peak_reporter(folder / "peak_kib") + command, capture_output=True, text=True, cwd=REPO,
+                              env=os.environ | {"PYTHONPATH": str(REPO)})
         seconds = time.perf_counter() - start
         if done.returncode != 0:
             raise SystemExit(f"relight failed:\n{done.stderr[-2000:]}")
-    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        peak_kib = int((folder / "peak_kib").read_text())
     return {"megapixels": 24.0, "peak_rss_mb": peak_kib / 1024.0, "seconds": seconds}
+
+
+def _peak_reporter(path: Path) -> list[str]:
+    """A small Python process that runs the command after it and writes the command's peak RSS
+    (KiB, its largest process) to `path`. Linux carries a process's peak RSS over fork + exec,
+    so a command started straight from this process would report at least this process's own
+    peak (networks loaded, the 24 MP photo made and encoded), not its own."""
+    script = ("import resource, subprocess, sys; code = subprocess.run(sys.argv[2:]).returncode; "
+              "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)); "
+              "sys.exit(code)")
+    return [sys.executable, "-c", script, str(path)]
 
 
 def main() -> None:

@@ -1,6 +1,9 @@
 """Between the full photo and the square working crop, and back: crop box, crop, paste-back;
 relit = albedo * shading; backgrounds; display exposure; the preview sheet.
 
+Full-frame work (paste-back, compositing) goes a band of rows at a time (io.images.row_bands),
+so a 24-megapixel photo costs its result arrays and no frame-sized temporaries.
+
 The crop's orthographic camera spans the world square [-1, 1] x [-1, 1] (CROP_RECT): pixel
 (i, j) of an R x R crop has its centre at x = -1 + (j + 0.5) 2/R, y = 1 - (i + 0.5) 2/R
 (DESIGN.md's pixel-centre formula), the same square the geometry nets predict depth in.
@@ -14,7 +17,7 @@ import cv2
 import numpy as np
 
 from relightcli.errors import InputError
-from relightcli.io.images import LUMINANCE, linear_to_srgb, srgb_to_linear
+from relightcli.io.images import LUMINANCE, linear_to_srgb, row_bands, srgb_to_linear
 
 CROP_RECT = (-1.0, 1.0, -1.0, 1.0)  # x0, x1, y0, y1 of the working crop
 
@@ -63,20 +66,28 @@ def crop_square(image: np.ndarray, box: CropBox) -> np.ndarray:
     return out.reshape((box.resolution, box.resolution) + image.shape[2:])
 
 
-def paste_back(crop: np.ndarray, box: CropBox, height: int, width: int) -> np.ndarray:
-    """(R, R[, C]) crop -> (height, width[, C]) full frame, zero outside the box. Bilinear."""
-    full = np.zeros((height, width) + crop.shape[2:], np.float32)
-    ys, xs = _overlap(box.y0, box.size, height), _overlap(box.x0, box.size, width)
-    if not (ys and xs):
-        return full
-    # Map each visible full-frame pixel centre into crop pixel coordinates (inverse warp).
+def paste_back(crop: np.ndarray, box: CropBox, height: int, width: int, rows: slice | None = None) -> np.ndarray:
+    """(R, R[, C]) crop -> (height, width[, C]) full frame, zero outside the box. Bilinear.
+
+    rows: a slice (step 1) of the full frame's rows to return, default all. The box is warped a
+    band of rows at a time, so the result is the only array of the frame's size."""
+    top, bottom, _ = (rows or slice(None)).indices(height)
+    out = np.zeros((max(bottom - top, 0), width) + crop.shape[2:], np.float32)
+    y_lo, y_hi = max(box.y0, top), min(box.y0 + box.size, bottom)  # rows of the box among them
+    xs = _overlap(box.x0, box.size, width)
+    if y_hi <= y_lo or not xs:
+        return out
+    crop = np.ascontiguousarray(crop, dtype=np.float32)
     s = box.resolution / box.size
-    matrix = np.array([[s, 0.0, (xs[0] - box.x0 + 0.5) * s - 0.5],
-                       [0.0, s, (ys[0] - box.y0 + 0.5) * s - 0.5]])
-    visible = cv2.warpAffine(crop.astype(np.float32), matrix, (xs[1] - xs[0], ys[1] - ys[0]),
-                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
-    full[ys[0]:ys[1], xs[0]:xs[1]] = visible.reshape(visible.shape[:2] + crop.shape[2:])
-    return full
+    for band in row_bands(y_hi - y_lo):
+        y0, y1 = y_lo + band.start, y_lo + band.stop
+        # Map each visible full-frame pixel centre into crop pixel coordinates (inverse warp).
+        matrix = np.array([[s, 0.0, (xs[0] - box.x0 + 0.5) * s - 0.5],
+                           [0.0, s, (y0 - box.y0 + 0.5) * s - 0.5]])
+        visible = cv2.warpAffine(crop, matrix, (xs[1] - xs[0], y1 - y0),
+                                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+        out[y0 - top:y1 - top, xs[0]:xs[1]] = visible.reshape(visible.shape[:2] + crop.shape[2:])
+    return out
 
 
 def _overlap(start: int, size: int, limit: int):
@@ -93,11 +104,27 @@ def display_exposure(relit: np.ndarray, mask: np.ndarray, target: float) -> floa
     """The factor that maps the 95th percentile of the person's luminance to `target`, for LDR
     outputs (an HDR environment gives radiance in arbitrary units; a PNG clips at 1). 1.0 for a
     black person."""
-    luminance = relit[mask > 0.5] @ LUMINANCE
+    return exposure_for(relit[mask > 0.5] @ LUMINANCE, target)
+
+
+def exposure_for(luminance: np.ndarray, target: float) -> float:
+    """display_exposure from the person's luminance values, (N,) in any order."""
     if luminance.size == 0:
         return 1.0
     p95 = float(np.percentile(luminance, 95.0))
     return target / p95 if p95 > 0 else 1.0
+
+
+def person_luminance(bands, mask: np.ndarray) -> np.ndarray:
+    """Luminance of the pixels where mask > 0.5, (N,) float32, from `bands`: (rows, image rows)
+    pairs that cover the (H, W) mask, e.g. pasted_bands(...)."""
+    return np.concatenate([band[mask[rows] > 0.5] @ LUMINANCE for rows, band in bands])
+
+
+def pasted_bands(crop: np.ndarray, box: CropBox, height: int, width: int):
+    """(rows, paste_back(crop, box, height, width)[rows]) for bands of rows, top to bottom."""
+    for rows in row_bands(height):
+        yield rows, paste_back(crop, box, height, width, rows)
 
 
 def parse_colour(text: str) -> np.ndarray:
@@ -126,6 +153,23 @@ def composite(relit: np.ndarray, mask: np.ndarray, background: str, *, photo: np
     if behind is None:
         raise ValueError(f"background {background!r} needs its image")
     return (relit * alpha + behind * (1.0 - alpha)).astype(np.float32), None
+
+
+def composite_crop(relit: np.ndarray, box: CropBox, mask: np.ndarray, background: str, *,
+                   photo: np.ndarray | None = None, env_view: np.ndarray | None = None, scale: float = 1.0,
+                   out: np.ndarray | None = None):
+    """composite() of the (R, R, 3) relit crop pasted back into the frame, relit and env_view
+    times `scale` (display exposure), a band of rows at a time: the (H, W, 3) result is the
+    only frame-sized array it makes, none with `out` (where to write it; it may be photo or
+    env_view, each band is read before it is written). mask, photo, env_view: full frame, as
+    composite()."""
+    height, width = mask.shape
+    rgb = np.empty((height, width, 3), np.float32) if out is None else out
+    for rows, person in pasted_bands(relit, box, height, width):
+        rgb[rows], _ = composite(
+            person * np.float32(scale), mask[rows], background, photo=None if photo is None else photo[rows],
+            env_view=None if env_view is None else env_view[rows] * np.float32(scale))
+    return rgb, mask.astype(np.float32, copy=False) if background == "transparent" else None
 
 
 def to_display(image: np.ndarray, scale: float = 1.0) -> np.ndarray:

@@ -239,7 +239,7 @@ def _input_mask(image, options: RelightOptions, input_path):
         # A grey mask image is data; a mask given as an alpha channel wins when it has one.
         has_alpha = mask_image.alpha is not None and mask_image.alpha.min() < 1.0
         values = mask_image.alpha if has_alpha else mask_image.rgb[..., 0]
-        return values.clip(0.0, 1.0).astype("float32")
+        return values.clip(0.0, 1.0).astype(np.float32, copy=False)
     if image.alpha is not None and float(image.alpha.min()) < 1.0:
         return image.alpha
     return None

@@ -3,7 +3,8 @@
 `Frame` carries what earlier stages produced. Working-crop arrays are (R, R, ...) float32 in
 the crop camera of relightcli.compose (world square [-1, 1]^2, orthographic along -Z);
 full-frame arrays are (H, W, ...) float32. Networks see the crop as the photo shows it
-(background included, as in training); their outputs are masked afterwards.
+(background included, as in training); their outputs are masked afterwards. Results stay at the
+crop's size until an output needs them full frame: a 24 MP frame is 288 MB as float32 RGB.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 
 from relightcli import compose
 from relightcli.io.envmap import environment_view
+from relightcli.io.images import row_bands
 
 
 @dataclass
@@ -34,8 +36,15 @@ class Frame:
     hits: object | None = None  # relightcli.render.camera.PixelGeometry: what each crop pixel sees
     coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
     shading: np.ndarray | None = None  # (R, R, 3) final shading under env
-    relit: np.ndarray | None = None  # (H, W, 3) full frame, linear, person only
+    relit_crop: np.ndarray | None = None  # (R, R, 3) albedo * shading, linear
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
+
+    @property
+    def relit(self) -> np.ndarray:
+        """(H, W, 3) full frame, linear, person only: relit_crop pasted back, anew on each
+        access (the outputs composite it a band of rows at a time instead)."""
+        height, width = self.image.shape[:2]
+        return compose.paste_back(self.relit_crop, self.box, height, width)
 
 
 class Models:
@@ -203,9 +212,8 @@ def stage_refine(frame: Frame, options, models: Models) -> None:
 
 
 def stage_compose(frame: Frame, options, models: Models) -> None:
-    """relit = albedo * shading in the crop, pasted back into the full frame."""
-    height, width = frame.image.shape[:2]
-    frame.relit = compose.paste_back(compose.relight(frame.albedo, frame.shading), frame.box, height, width)
+    """relit = albedo * shading in the crop (pasted back into the full frame by the outputs)."""
+    frame.relit_crop = compose.relight(frame.albedo, frame.shading)
 
 
 STAGES = {
@@ -255,18 +263,23 @@ def relit_image(frame: Frame, options, hdr: bool):
     its 95th-percentile luminance matches the input photo's person (background keep) or 0.8
     (other backgrounds; the environment view gets the same factor, so they stay consistent)."""
     mask = frame.mask
+    height, width = mask.shape
     scale = 1.0
     if not hdr:
         target = 0.8
         if options.background == "keep":
-            reference = float(np.percentile(frame.image[mask > 0.5] @ compose.LUMINANCE, 95.0)) if (mask > 0.5).any() else 0.8
+            photo_bands = ((rows, frame.image[rows]) for rows in row_bands(height))
+            photo_luminance = compose.person_luminance(photo_bands, mask)
+            reference = float(np.percentile(photo_luminance, 95.0)) if photo_luminance.size else 0.8
             target = reference if reference > 0 else 0.8
-        scale = compose.display_exposure(frame.relit, mask, target)
+        relit_bands = compose.pasted_bands(frame.relit_crop, frame.box, height, width)
+        scale = compose.exposure_for(compose.person_luminance(relit_bands, mask), target)
     env_view = None
     if options.background == "env":
         env_view = _background_view(frame, options)
-    rgb, alpha = compose.composite(frame.relit * np.float32(scale), mask, options.background,
-                                   photo=frame.image, env_view=None if env_view is None else env_view * np.float32(scale))
+    # The environment view is made for this output only: composite over it in place.
+    rgb, alpha = compose.composite_crop(frame.relit_crop, frame.box, mask, options.background,
+                                        photo=frame.image, env_view=env_view, scale=scale, out=env_view)
     frame.notes["relit"] = {"display_exposure": scale}
     return rgb, alpha, True
 

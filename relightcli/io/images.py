@@ -12,6 +12,7 @@ names the file and says what to do.
 
 from __future__ import annotations
 
+import functools
 import os
 import secrets
 from dataclasses import dataclass
@@ -59,6 +60,19 @@ def linear_to_srgb(x):
     low = x * np.float32(12.92)
     high = np.float32(1.055) * np.maximum(x, 0.0031308) ** np.float32(1.0 / 2.4) - np.float32(0.055)
     return np.where(x <= 0.0031308, low, high).astype(np.float32)
+
+
+# --- full frames, a band of rows at a time ------------------------------------------------
+
+# Rows per band. A 24-megapixel frame is 288 MB as float32 RGB; every whole-frame expression
+# (a transfer curve, a composite) would allocate several such temporaries, a band of 256 rows
+# of a 6000-pixel-wide frame only 18 MB each.
+BAND_ROWS = 256
+
+
+def row_bands(height: int, rows: int = BAND_ROWS) -> list[slice]:
+    """Slices of at most `rows` rows that cover rows 0..height, top to bottom."""
+    return [slice(top, min(top + rows, height)) for top in range(0, height, rows)]
 
 
 # --- reading ------------------------------------------------------------------------------
@@ -144,15 +158,22 @@ def _check_pixel_count(spec: oiio.ImageSpec, path: str, max_pixels: int) -> None
             f"{max_pixels}", path=path, fix=_FIX_TOO_LARGE)
 
 
+def _stored_as_codes(spec: oiio.ImageSpec) -> bool:
+    """8- or 16-bit integer channels, all of one type: read as stored, decoded by table."""
+    return spec.format.basetype in (oiio.UINT8, oiio.UINT16) and not spec.channelformats
+
+
 def _read_pixels(image_input: oiio.ImageInput, path: str) -> np.ndarray:
-    """All channels of subimage 0 as (H, W, C) float32 (integers scaled to [0, 1])."""
-    pixels = image_input.read_image(oiio.FLOAT)
+    """All channels of subimage 0 as (H, W, C): uint8 / uint16 codes as stored when
+    `_stored_as_codes`, else float32 (other integers scaled to [0, 1])."""
+    spec = image_input.spec()
+    pixels = image_input.read_image(spec.format if _stored_as_codes(spec) else oiio.FLOAT)
     # JPEG reports a truncated stream only through has_error, with pixels returned
     if pixels is None or image_input.has_error:
         reason = image_input.geterror() or oiio.geterror() or "read failed"
         raise InputError(f"cannot decode pixels (truncated or corrupt?): {reason}",
                          path=path, fix=_FIX_UNREADABLE)
-    pixels = np.asarray(pixels, dtype=np.float32)
+    pixels = np.asarray(pixels)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
     return pixels
@@ -163,7 +184,7 @@ def _to_display_window(pixels: np.ndarray, spec: oiio.ImageSpec) -> np.ndarray:
     full_w, full_h = spec.full_width, spec.full_height
     if (spec.x, spec.y, spec.width, spec.height) == (spec.full_x, spec.full_y, full_w, full_h):
         return pixels
-    canvas = np.zeros((full_h, full_w, pixels.shape[2]), dtype=np.float32)
+    canvas = np.zeros((full_h, full_w, pixels.shape[2]), dtype=pixels.dtype)
     x0, y0 = spec.x - spec.full_x, spec.y - spec.full_y
     cx0, cy0 = max(x0, 0), max(y0, 0)
     cx1, cy1 = min(x0 + spec.width, full_w), min(y0 + spec.height, full_h)
@@ -186,7 +207,8 @@ def _split_channels(pixels: np.ndarray, spec: oiio.ImageSpec, path: str):
         rgb_index = [names.index(c) for c in "RGB"] if named_rgb else [0, 1, 2]
         alpha_index = spec.alpha_channel if spec.alpha_channel >= 0 else (3 if count == 4 else None)
         alpha = None if alpha_index is None else pixels[:, :, alpha_index]
-        return pixels[:, :, rgb_index], alpha
+        rgb = pixels[:, :, :3] if rgb_index == [0, 1, 2] else pixels[:, :, rgb_index]  # a view, no copy
+        return rgb, alpha
     raise InputError(f"unsupported channel layout: {count} channels {spec.channelnames}",
                      path=path, fix="save the image as gray, RGB or RGBA")
 
@@ -208,6 +230,30 @@ def _apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
     if orientation == 8:
         return np.rot90(array, k=1)
     return array
+
+
+@functools.lru_cache(maxsize=4)
+def _decode_table(bits: int, srgb: bool) -> np.ndarray:
+    """Every code of a `bits`-bit channel as float32: code * (1 / max), exactly the scaling
+    OIIO applies when it converts integers to float, then sRGB-decoded when `srgb`."""
+    top = (1 << bits) - 1
+    values = np.arange(top + 1, dtype=np.float32) * np.float32(1.0 / top)
+    table = srgb_to_linear(values) if srgb else values
+    table.flags.writeable = False  # shared by every later read
+    return table
+
+
+def _decode_codes(codes: np.ndarray, srgb: bool) -> np.ndarray:
+    """uint8 / uint16 codes (H, W[, C]) -> float32 values in [0, 1], linear when `srgb`.
+
+    A table lookup, a band of rows at a time: the transfer curve on the whole frame would
+    make several float frames of temporaries, and indexing with the whole frame would first
+    turn every code into an 8-byte index."""
+    table = _decode_table(codes.dtype.itemsize * 8, srgb)
+    values = np.empty(codes.shape, np.float32)
+    for rows in row_bands(codes.shape[0]):
+        values[rows] = table[codes[rows]]
+    return values
 
 
 def _unpremultiply(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -242,18 +288,25 @@ def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS, srgb: 
     finally:
         image_input.close()
     rgb, alpha = _split_channels(pixels, spec, path)
-    encoded = _is_integer(spec)
-    if encoded and srgb:
-        rgb = srgb_to_linear(rgb)
-    if alpha is not None:
-        alpha = np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0).astype(np.float32)
-        # OIIO flags data it hands back straight; anything else (EXR) is premultiplied
-        if spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0:
-            rgb = _unpremultiply(rgb, alpha)
+    # Orientation first: on codes it moves 1 or 2 bytes per value instead of 4 (views, mostly).
     orientation = spec.get_int_attribute("Orientation", 1)
-    rgb = np.ascontiguousarray(_apply_orientation(rgb, orientation), dtype=np.float32)
+    rgb = _apply_orientation(rgb, orientation)
+    alpha = None if alpha is None else _apply_orientation(alpha, orientation)
+    encoded = _is_integer(spec)
+    if pixels.dtype != np.float32:  # 8/16-bit codes (_stored_as_codes)
+        rgb = _decode_codes(rgb, srgb)
+        alpha = None if alpha is None else _decode_codes(alpha, srgb=False)
+    else:
+        if encoded and srgb:
+            rgb = srgb_to_linear(rgb)
+        if alpha is not None:
+            alpha = np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0).astype(np.float32)
+    # OIIO flags data it hands back straight; anything else (EXR) is premultiplied
+    if alpha is not None and spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 0:
+        rgb = _unpremultiply(rgb, alpha)
+    rgb = np.ascontiguousarray(rgb, dtype=np.float32)
     if alpha is not None:
-        alpha = np.ascontiguousarray(_apply_orientation(alpha, orientation), dtype=np.float32)
+        alpha = np.ascontiguousarray(alpha, dtype=np.float32)
     return Image(rgb=rgb, alpha=alpha, path=path, encoded=encoded, bits=_bits(spec))
 
 
@@ -268,7 +321,8 @@ def _output_format(path: str) -> str:
 
 
 def _check_arrays(rgb, alpha, path: str):
-    """rgb as (H, W, 3) or (H, W) float32, alpha as (H, W) float32 or None."""
+    """rgb as (H, W, 3) or (H, W) float32, alpha as (H, W) float32 or None (NaN and values
+    outside [0, 1] are repaired where the format needs it: _quantize, the EXR branch)."""
     rgb = np.asarray(rgb, dtype=np.float32)
     if rgb.ndim == 3 and rgb.shape[2] == 1:
         rgb = rgb[:, :, 0]
@@ -278,7 +332,6 @@ def _check_arrays(rgb, alpha, path: str):
         alpha = np.asarray(alpha, dtype=np.float32)
         if alpha.shape != rgb.shape[:2]:
             raise ValueError(f"{path}: alpha must be {rgb.shape[:2]}, got {alpha.shape}")
-        alpha = np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0)
     return rgb, alpha
 
 
@@ -300,8 +353,11 @@ def _encode_pixels(fmt: str, rgb, alpha, bits, quality: int, half: bool, srgb: b
     if fmt in ("png", "jpeg"):
         bits = 8 if bits is None or fmt == "jpeg" else bits
         keep_alpha = alpha if fmt == "png" else None  # JPEG has no alpha
-        values = linear_to_srgb(rgb) if srgb else rgb
-        pixels = _quantize(_channels(values, keep_alpha), bits)
+        channels = (1 if rgb.ndim == 2 else 3) + (keep_alpha is not None)
+        pixels = np.empty(rgb.shape[:2] + (channels,), np.uint8 if bits == 8 else np.uint16)
+        for rows in row_bands(rgb.shape[0]):  # float temporaries a band's size, not the frame's
+            values = linear_to_srgb(rgb[rows]) if srgb else rgb[rows]
+            pixels[rows] = _quantize(_channels(values, None if keep_alpha is None else keep_alpha[rows]), bits)
         spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], pixels.shape[2],
                               oiio.UINT8 if bits == 8 else oiio.UINT16)
         spec.attribute("oiio:UnassociatedAlpha", 1)
@@ -313,6 +369,7 @@ def _encode_pixels(fmt: str, rgb, alpha, bits, quality: int, half: bool, srgb: b
         spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], 3, oiio.FLOAT)
         return np.ascontiguousarray(colour), spec
     # EXR stores associated (premultiplied) alpha by convention
+    alpha = None if alpha is None else np.clip(np.nan_to_num(alpha, nan=0.0), 0.0, 1.0)
     colour = rgb if alpha is None else rgb * (alpha if rgb.ndim == 2 else alpha[:, :, None])
     pixels = _channels(colour, alpha)
     spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], pixels.shape[2],

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -193,6 +194,46 @@ def test_sixteen_bit_precision_is_kept(tmp_path):
     image = read_image(tmp_path / "ramp16.png")
     assert image.bits == 16
     assert len(np.unique(image.rgb[..., 0])) > 256
+
+
+@pytest.mark.parametrize("bits, srgb", [(8, True), (8, False), (16, True), (16, False)])
+def test_every_integer_code_decodes_as_through_float(tmp_path, bits, srgb):
+    # 8/16-bit files are decoded by a table of every code; it must give what OIIO's conversion
+    # to float followed by the transfer curve gives.
+    codes = np.arange(1 << bits).astype(np.uint8 if bits == 8 else np.uint16).reshape(-1, 256)
+    path = str(tmp_path / "codes.png")
+    output = oiio.ImageOutput.create(path)
+    output.open(path, oiio.ImageSpec(256, codes.shape[0], 1, oiio.UINT8 if bits == 8 else oiio.UINT16))
+    output.write_image(codes)
+    output.close()
+    as_float = oiio.ImageInput.open(path).read_image(oiio.FLOAT)[:, :, 0]
+    expected = srgb_to_linear(as_float) if srgb else as_float
+    np.testing.assert_array_equal(read_image(path, srgb=srgb).rgb[:, :, 0], expected)
+
+
+def traced_peak(action) -> int:
+    """Peak bytes allocated through Python and numpy while action() runs."""
+    tracemalloc.start()
+    try:
+        action()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+# Issue "End to end": a 24 MP photo must relight in 1.5 GB, where one float32 RGB frame is
+# 288 MB. Decoding or encoding a whole frame at once took 5-6 frames of float temporaries.
+def test_writing_a_large_frame_makes_no_frame_sized_float_temporaries(tmp_path):
+    rgb = np.full((16 * images.BAND_ROWS, 256, 3), 0.5, np.float32)
+    peak = traced_peak(lambda: write_image(tmp_path / "large.png", rgb))
+    assert peak < rgb.nbytes  # the uint8 pixels (a quarter) and band-sized temporaries
+
+
+def test_reading_a_large_frame_makes_no_frame_sized_float_temporaries(tmp_path):
+    write_image(tmp_path / "large.png", np.full((16 * images.BAND_ROWS, 256, 3), 0.5, np.float32))
+    frame_bytes = 16 * images.BAND_ROWS * 256 * 3 * 4
+    peak = traced_peak(lambda: read_image(tmp_path / "large.png"))
+    assert peak < 2 * frame_bytes  # the float result, the 8-bit codes, band-sized temporaries
 
 
 def test_gray_map_writes_one_channel_and_reads_as_three_equal(tmp_path):
