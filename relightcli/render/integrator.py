@@ -45,6 +45,8 @@ ROUND_RAYS = 1 << 19
 SUN_SPLIT_FRACTION = 0.1
 # Pixels darker than this share of the median count as converged at this absolute error
 DARK_FLOOR = 0.01
+# Share of a time budget kept for assembling the result after the last round
+FINISH_SHARE = 0.05
 
 
 @dataclass
@@ -125,7 +127,8 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     spp: passes per pixel, or the cap when target_error / time_budget are given (rounded up
     to a multiple of RQMC_GROUPS for "sobol"; so is min_spp, the first adaptive round).
     target_error: stop a pixel when stderr / mean (channel average) <= this.
-    time_budget: seconds; sampling stops after the round that crosses it.
+    time_budget: seconds; rounds stop when the next would not fit, and what is left goes to
+    the pixels with the largest relative error.
     bounces: 1 (direct) or 2 (plus one diffuse interreflection with `albedo`, a float or an
     (H, W, 3) image aligned with the camera). max_distance: occluders farther than this
     (local units) are ignored. workers: processes sampling in parallel (forked per render;
@@ -312,10 +315,17 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
                                state, active, target_error, round_rays)
         passes = min(_round_up(passes, state.groups), spp - done_passes)
         if time_budget is not None and seconds_per_pass_pixel is not None:
-            left = time_budget - (time.perf_counter() - start)
+            left = (1.0 - FINISH_SHARE) * time_budget - (time.perf_counter() - start)
             affordable = int(left / (seconds_per_pass_pixel * active.size))
             passes = min(passes, affordable - affordable % state.groups)
             if passes < 1:
+                # What is left buys one more group of passes for the pixels with most error
+                count = int(0.9 * left / (seconds_per_pass_pixel * state.groups))  # margin: a partial round costs more per pixel
+                if count >= 1:
+                    worst = active[np.argsort(-state.relative_error()[active], kind="stable")[:count]]
+                    worst.sort()
+                    state.add(worst, statistics(done_passes, state.groups, worst, state.groups),
+                              state.groups)
                 break
         tick = time.perf_counter()
         state.add(active, statistics(done_passes, passes, active, state.groups), passes)
