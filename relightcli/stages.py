@@ -123,14 +123,17 @@ def stage_sh_shading(frame: Frame, options, models: Models) -> None:
 
 
 def stage_reconstruct(frame: Frame, options, models: Models) -> None:
-    """Double-sided depth -> watertight mesh in the crop camera frame, then 10 steps of
-    cotangent Laplacian smoothing (the paper's setting)."""
+    """Double-sided depth, smoothed inside the person (see smoothing.DEPTH_SIGMA) -> watertight
+    mesh in the crop camera frame, then 10 steps of cotangent Laplacian smoothing (the
+    paper's setting)."""
     from relightcli.geometry.mesh import reconstruct_mesh
-    from relightcli.geometry.smoothing import smooth_mesh
+    from relightcli.geometry.smoothing import DEPTH_SIGMA, smooth_depth, smooth_mesh
 
     g = frame.geometry
-    back = np.minimum(g.back_depth, g.front_depth)  # the back never lies in front
-    mesh = reconstruct_mesh(frame.crop_mask, g.front_depth, back, compose.CROP_RECT)
+    sigma = DEPTH_SIGMA * frame.crop_mask.shape[0]
+    front = smooth_depth(g.front_depth, frame.crop_mask, sigma)
+    back = np.minimum(smooth_depth(g.back_depth, frame.crop_mask, sigma), front)  # the back never lies in front
+    mesh = reconstruct_mesh(frame.crop_mask, front, back, compose.CROP_RECT)
     frame.mesh = smooth_mesh(mesh)
     frame.notes["reconstruct"] = {"vertices": int(len(frame.mesh.vertices)), "faces": int(len(frame.mesh.faces))}
 

@@ -127,3 +127,33 @@ def _check_inputs(vertices, faces, steps, step_size):
     if not 0.0 < step_size <= 1.0:
         raise InputError(f"smoothing step size must be in (0, 1], got {step_size}",
                          fix="use 0.5 (the default)")
+
+
+# --- depth maps before meshing ---------------------------------------------------------------
+# Gaussian sigma of `smooth_depth`, as a fraction of the crop side. Our geometry net paints
+# cloth texture into the depth (stripes become ridges, which then shade and shadow); on the
+# 20 evaluation scenes (relight eval, raytrace-norefine, 256 crop) shading PSNR went from 12.6
+# dB (none) to 15.0 / 15.5 / 15.7 / 15.8 dB at 0.01 / 0.02 / 0.04 / 0.08, relit PSNR peaked
+# at 0.02. The paper's PIFuHD meshes need no such step; ours do until the nets improve.
+DEPTH_SIGMA = 0.04
+
+
+def smooth_depth(depth, mask, sigma: float) -> np.ndarray:
+    """Depth (H, W) float smoothed inside the person: a normalised Gaussian convolution (the
+    blurred depth x mask over the blurred mask), so the background never leaks in. sigma in
+    pixels (0 returns a copy). Returns (H, W) float32; outside the mask the input is kept.
+    """
+    import cv2
+
+    depth = np.asarray(depth, dtype=np.float32)
+    inside = (np.asarray(mask) > 0.5).astype(np.float32)
+    if sigma <= 0 or not inside.any():
+        return depth.copy()
+    if not np.all(np.isfinite(depth[inside > 0])):
+        raise InputError("depth map has NaN or Inf inside the mask")
+    size = 2 * int(np.ceil(3.0 * sigma)) + 1
+    weight = cv2.GaussianBlur(inside, (size, size), sigma, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.GaussianBlur(np.where(inside > 0, depth, 0.0).astype(np.float32), (size, size),
+                             sigma, borderType=cv2.BORDER_CONSTANT)
+    # Every mask pixel weighs itself: its weight is at least the kernel's centre value
+    return np.where(inside > 0, total / np.maximum(weight, 1e-12), depth).astype(np.float32)

@@ -10,7 +10,7 @@ import trimesh
 
 from relightcli.errors import InputError
 from relightcli.geometry.mesh import reconstruct_mesh
-from relightcli.geometry.smoothing import cotangent_weights, smooth_mesh, smooth_vertices
+from relightcli.geometry.smoothing import cotangent_weights, smooth_depth, smooth_mesh, smooth_vertices
 
 
 def _jittered_grid(n=12, jitter=0.25, seed=0):
@@ -134,3 +134,37 @@ def test_nan_vertices_raise():
     vertices[0, 0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         smooth_vertices(vertices, faces)
+
+
+# ------------------------------------------------------------------ depth before meshing
+def test_smooth_depth_keeps_constants_and_ignores_the_background():
+    mask = np.zeros((64, 64), np.float32)
+    mask[10:50, 20:40] = 1.0
+    depth = np.where(mask > 0, 0.3, -5.0).astype(np.float32)  # far background
+    out = smooth_depth(depth, mask, sigma=6.0)
+    np.testing.assert_allclose(out[mask > 0], 0.3, rtol=1e-5)
+    np.testing.assert_array_equal(out[mask == 0], depth[mask == 0])
+
+
+def test_smooth_depth_keeps_a_plane_inside_and_removes_ridges():
+    rows, cols = np.mgrid[0:96, 0:96].astype(np.float32)
+    mask = np.ones((96, 96), np.float32)
+    plane = 0.01 * cols - 0.02 * rows
+    ridges = 0.05 * np.sin(cols * 2 * np.pi / 8)  # cloth stripes painted into depth
+    out = smooth_depth(plane + ridges, mask, sigma=4.0)
+    interior = (slice(20, 76), slice(20, 76))
+    np.testing.assert_allclose(out[interior], plane[interior], atol=0.05 * 0.01)
+
+
+@pytest.mark.parametrize("case", ["empty", "one_pixel", "sliver"])
+def test_smooth_depth_is_finite_on_tiny_masks(case):
+    mask = np.zeros((32, 32), np.float32)
+    if case == "one_pixel":
+        mask[5, 7] = 1.0
+    elif case == "sliver":
+        mask[3:29, 16] = 1.0
+    depth = np.random.default_rng(0).normal(size=(32, 32)).astype(np.float32)
+    out = smooth_depth(depth, mask, sigma=5.0)
+    assert np.all(np.isfinite(out))
+    if case == "one_pixel":
+        assert out[5, 7] == pytest.approx(depth[5, 7], rel=1e-5)
