@@ -123,6 +123,9 @@ class ModelSession:
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        # No memory arena: it keeps every activation buffer of the largest run (measured: 1.19
+        # GB peak for the four nets at a 256 crop with it, 0.52 GB without, same speed)
+        options.enable_cpu_mem_arena = False
         try:
             return ort.InferenceSession(str(self.path), sess_options=options,
                                         providers=providers or select_providers())
