@@ -98,7 +98,22 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
         skipped["refine"] = "--method raytrace-norefine"
     if "mask" in needed and has_alpha:
         skipped["mask_net"] = "the input brings an alpha channel or --mask"
+    if "face" in run and not _face_refinement_ships():
+        run.remove("face")
+        skipped["face"] = ("no face refinement model ships yet (models/manifest.json has no "
+                           "face_refine): a face fit would feed nothing")
     return Plan(run, skipped)
+
+
+def _face_refinement_ships() -> bool:
+    """Whether the models folder describes a face refinement net (the face stage's consumer)."""
+    from relightcli.errors import RelightError
+    from relightcli.nets.manifest import load_manifest
+
+    try:
+        return "face_refine" in load_manifest()
+    except RelightError:
+        return False  # a broken manifest is reported when the models load
 
 
 class RelightWorker:
