@@ -12,16 +12,8 @@ RUN python -m venv /opt/venv \
  && /opt/venv/bin/python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)"
 
 FROM python:3.11-slim-bookworm AS runtime
-# Shared libraries the wheels load at run time (tests/test_runtime_env.py derives this list with
-# ldd + dpkg and checks it): pymeshlab fails to import without libGL.so.1, silently loses its I/O
-# plugins without libOpenGL.so.0, and links libX11/libxcb; its font plugins need fontconfig.
-RUN apt-get update \
- && apt-get install -y --no-install-recommends \
-      libgl1 libglx0 libglvnd0 libopengl0 \
-      libx11-6 libxcb1 libxau6 libxdmcp6 libbsd0 libmd0 \
-      libfontconfig1 libfreetype6 libpng16-16 libbrotli1 \
-      libgmp10 libp11-kit0 libffi8 libexpat1 \
- && rm -rf /var/lib/apt/lists/*
+# No Debian packages beyond the base image: every wheel we install loads only libc, libstdc++,
+# libgcc and zlib from the system (tests/test_runtime_env.py checks this with ldd + dpkg).
 COPY --from=build /opt/venv /opt/venv
 COPY models /opt/relightcli/models
 ENV PATH=/opt/venv/bin:$PATH \

@@ -30,16 +30,6 @@ torch = [m for m in sys.modules if m == 'torch' or m.startswith('torch.')]
 print(len(names), 'modules', 'torch' if torch else 'no-torch')
 """
 
-PYMESHLAB_IO = """
-import sys, pymeshlab
-ms = pymeshlab.MeshSet()
-ms.create_sphere()
-ms.save_current_mesh(sys.argv[1])
-ms.load_new_mesh(sys.argv[1])
-print(ms.current_mesh().vertex_number())
-"""
-
-
 @pytest.fixture(scope="module")
 def runtime_venv(tmp_path_factory):
     """A venv with `pip install -c requirements.lock .` and nothing else (no system packages)."""
@@ -89,15 +79,10 @@ def test_runtime_venv_imports_every_module_without_torch(runtime_venv):
     assert int(count) >= 10 and verdict == "no-torch", out.stdout
 
 
-def test_runtime_venv_pymeshlab_io_plugins_load(runtime_venv, tmp_path):
-    out = run_in(runtime_venv, str(runtime_venv / "bin" / "python"), "-c", PYMESHLAB_IO, str(tmp_path / "s.ply"))
-    assert out.returncode == 0, out.stderr
-    assert int(out.stdout.split()[-1]) > 100
-
-
 def dockerfile_apt_packages() -> set[str]:
     block = re.search(r"apt-get install[^\n]*\\\n((?:.*\\\n)+)", DOCKERFILE)
-    assert block, "the runtime stage installs no Debian packages"
+    if block is None:
+        return set()
     return {word for word in block.group(1).replace("\\", " ").split() if re.fullmatch(r"lib[\w.+-]+", word)}
 
 
@@ -119,7 +104,7 @@ def test_dockerfile_installs_every_system_library_the_wheels_load(runtime_venv):
             owner = subprocess.run(["dpkg", "-S", lib.replace("/usr/lib/", "/lib/")], capture_output=True, text=True)
         if owner.returncode == 0:
             packages.add(owner.stdout.split(":")[0])
-    assert {"libgl1", "libopengl0", "libx11-6", "libxcb1"} <= packages  # pymeshlab's, as documented
+    assert "libc6" in packages  # the scan found the wheels' libraries at all
     missing = packages - BASE_IMAGE_PACKAGES - dockerfile_apt_packages()
     assert not missing, f"the Dockerfile's runtime stage must apt-get install {sorted(missing)}"
 
