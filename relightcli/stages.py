@@ -37,6 +37,7 @@ class Frame:
     coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
     shading: np.ndarray | None = None  # (R, R, 3) final shading under env
     relit_crop: np.ndarray | None = None  # (R, R, 3) albedo * shading, linear
+    face_fit: object | None = None  # relightcli.geometry.face.FaceFit, when the face stage ran
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
 
     @property
@@ -68,10 +69,12 @@ class Models:
         if family not in self._sessions:
             from relightcli.nets.delight import DelightNet
             from relightcli.nets.geometry import AONet, GeometryNet
+            from relightcli.nets.landmarks import LandmarkNet
             from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
 
             classes = {"geometry": GeometryNet, "ao": AONet, "delight": DelightNet,
-                       "body_refine": BodyRefineNet, "face_refine": FaceRefineNet}
+                       "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
+                       "landmarks": LandmarkNet}
             self._sessions[family] = classes[family](threads=self.threads)
         return self._sessions[family]
 
@@ -200,16 +203,15 @@ def fill_uncovered(shading: np.ndarray, covered: np.ndarray, wanted: np.ndarray)
 
 
 def stage_face(frame: Frame, options, models: Models) -> None:
-    """Find the face for the face refinement. The morphable-model fit needs landmarks from a
-    landmark network; until one ships, the stage reports why the face is not refined."""
-    from relightcli.geometry.face_detect import detect_face
+    """Detect the face, regress its landmarks, fit the ICT model (relightcli.geometry.face).
+    Planned only once a face refinement net ships to consume the fit (pipeline.plan_stages);
+    its coarse face shading, `render_face_shading`, then belongs to the lighting stages."""
+    from relightcli.geometry.face import fit_face_in_crop
 
-    box, reason = detect_face(frame.crop, frame.crop_mask)
-    if box is None:
-        frame.notes["face"] = {"skipped": reason}
-        return
-    frame.notes["face"] = {"box": [round(v, 1) for v in (box.left, box.top, box.width, box.height)],
-                           "skipped": "no landmark network ships yet: face shading is not refined"}
+    depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
+    fit, info = fit_face_in_crop(frame.crop, frame.crop_mask, models.get("landmarks"), depth=depth)
+    frame.notes["face"] = info
+    frame.face_fit = fit
 
 
 def stage_refine(frame: Frame, options, models: Models) -> None:

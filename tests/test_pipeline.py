@@ -186,3 +186,23 @@ def test_turntable_builds_the_scene_once_and_relights_each_frame():
     assert len(shadings) == 4
     assert not np.allclose(shadings[0], shadings[1])  # the light moved
     assert frame.scene is not None  # closed by run_stages, kept for inspection
+
+
+def test_face_stage_is_planned_and_runs_once_a_face_refinement_ships(monkeypatch):
+    from pathlib import Path
+
+    from relightcli import pipeline
+    from relightcli.io.envmap import load_envmap
+    from relightcli.io.images import read_image
+
+    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
+    assert "face" in plan(["relit"]).run
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    image = read_image(examples / "skier.jpg").rgb
+    mask = read_image(examples / "skier_mask.png", srgb=False).rgb[..., 0]
+    options = RelightOptions(outputs=("relit",), resolution=128, threads=1)
+    monkeypatch.setattr(pipeline, "output_needs", lambda output, method: ("face",))
+    frame, _ = run_stages(image, mask, load_envmap(examples / "noon_grass.hdr"), options,
+                          ItemReport("skier"), Models(1))
+    info = frame.notes["face"]
+    assert ("skipped" in info) != (frame.face_fit is not None)  # a fit, or a reason

@@ -15,6 +15,9 @@ from export.nets import FAMILIES
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ALL_NETS = ("geometry", "ao", "delight", "body_refine", "face_refine")
+# Trained on its own dataset (export/factory/face_dataset.py), so not part of `all`
+LANDMARK_NET = "landmarks"
+TRAINABLE_NETS = ALL_NETS + (LANDMARK_NET,)
 
 # The paper's loss weights (DESIGN.md); the configs repeat them so a run records what it used.
 PAPER_LOSS = {
@@ -23,6 +26,7 @@ PAPER_LOSS = {
     "delight": {"l1": 500.0, "perceptual": 100.0, "light": 0.025},
     "body_refine": {"l1": 10.0, "adversarial": 1.0, "fft": 0.001},
     "face_refine": {"l1": 5.0, "adversarial": 1.0},
+    "landmarks": {"l1": 1.0},  # not in the paper: L1 on the landmark pixels
 }
 DEFAULT_STANDIN = {
     "blur_sigma": 2.0,       # px: the smoothed reconstructed mesh loses fine shading detail
@@ -65,6 +69,7 @@ class TrainConfig:
     loss: dict = field(default_factory=dict)
     standin: dict = field(default_factory=dict)
     note: str = ""
+    lr_schedule: str = "constant"     # "constant", or "cosine": lr * (1 + cos(pi step / steps)) / 2
 
     def __post_init__(self):
         if self.net not in FAMILIES:
@@ -79,6 +84,8 @@ class TrainConfig:
             raise ConfigError(f"learning rates must be positive, got lr={self.lr}, lr_disc={self.lr_disc}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ConfigError(f"max_minutes must be positive or null, got {self.max_minutes}")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ConfigError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         unknown = set(self.loss) - set(PAPER_LOSS[self.net])
         if unknown:
             raise ConfigError(f"unknown loss terms {sorted(unknown)} for {self.net}; "

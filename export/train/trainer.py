@@ -110,6 +110,10 @@ class Trainer:
                                 "lower the learning rate")
         self.opt.zero_grad(set_to_none=True)
         total.backward()
+        if self.config.lr_schedule == "cosine":
+            progress = min(self.step / max(self.config.steps, 1), 1.0)
+            for group in self.opt.param_groups:
+                group["lr"] = self.config.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
         self.opt.step()
         log = {k: float(v.detach()) for k, v in terms.items()}
         log.update(loss=float(total.detach()), reconstruction=float(reconstruction.detach()))

@@ -1,25 +1,199 @@
-"""The face stage (issue 6): detect the face, fit the ICT FaceKit model to its landmarks, and
-give the fitted mesh in the crop's camera frame for the coarse face shading.
+"""The face stage (issue 6): detect the face, regress its 68 landmarks, fit the ICT FaceKit
+model to them, and ray-trace the fitted face's coarse shading pixel-aligned with the face crop.
 
-One import point for the pipeline; the parts live in
+`fit_face_in_crop` runs the first part on the person crop and returns the fit or a reason to
+skip; `render_face_shading` renders the second. The parts live in
 - face_model.py: the shipped linear model (models/face_model.npz) and the weak-perspective
   camera helpers (DESIGN.md pixel convention);
 - face_fit.py: regularised Gauss-Newton fit of identity, expression and pose to 68 landmarks
   (optional weights, robust loss, optional depth), and the fitted mesh;
 - face_detect.py: OpenCV cascade detection with a (None, reason) skip path, and the 128x128
-  face crop rectangle.
+  face crop rectangle;
+- relightcli/nets/landmarks.py: the landmark network (ONNX Runtime).
+
+Landmarks run twice: once on the crop around the detector's box, then on a crop re-centred on
+the first landmarks with the framing the net was trained around (CANONICAL_*), which removes
+the detector's jitter; the second pass's landmarks are mapped back to the first crop, the
+face crop every later stage uses.
 """
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
 
 from relightcli.geometry.face_detect import CropRect, FaceBox, detect_face, face_crop_rect
 from relightcli.geometry.face_fit import FaceFit, face_mesh, fit_face
 from relightcli.geometry.face_model import (
     FaceModel,
     pixel_to_world,
+    rotation_angles_deg,
     rotation_matrix,
     transform,
     world_to_pixel,
 )
 
-__all__ = ["CropRect", "FaceBox", "FaceFit", "FaceModel", "detect_face", "face_crop_rect",
-           "face_mesh", "fit_face", "pixel_to_world", "rotation_matrix", "transform",
-           "world_to_pixel"]
+# Framing of the second landmark pass: side = scale x the larger side of the landmarks' box,
+# centre shifted up by shift x side (the median framing of the detector + face_crop_rect on
+# synthetic renders, export/factory/faces.py CANONICAL_FRAMING)
+CANONICAL_SCALE = 2.1
+CANONICAL_SHIFT_UP = 0.08
+# A fit whose weighted RMS landmark residual (pixels of the 128 crop) exceeds this does not
+# explain its landmarks: skipped. Measured: synthetic test faces p99 0.86 px (max 1.05), two
+# real photos 1.6-1.9, scattered points ~30. It is no face verifier: the net draws a
+# face-shaped layout on any crop (1.0-3.7 px on crops of clothes and background); finding
+# the face is the detector's job.
+MAX_RESIDUAL_PX = 4.0
+# Poses beyond the training range (yaw 40, pitch 25 degrees) with some margin, and faces
+# whose landmarks span less than this share of the crop, are not trusted
+MAX_ABS_YAW_DEG, MAX_ABS_PITCH_DEG = 60.0, 45.0
+MIN_FACE_SHARE = 0.2
+# Landmark noise the fit assumes (pixels of the 128 crop), chosen on the validation split:
+# 0.5 / 1 / 2 / 3 px gave median head-rotation errors of 3.73 / 3.72 / 3.68 / 3.61 degrees and
+# p90 7.1 / 6.9 / 6.7 / 6.6 (the net's mean landmark error there is 1.4 px); 2 is near the
+# net's error and keeps the fit residual meaningful
+LANDMARK_SIGMA_PX = 2.0
+PERSON_CROP_RECT = (-1.0, 1.0, -1.0, 1.0)  # the working crop's world square (compose.py)
+
+
+def cut_crop(image, crop: CropRect) -> np.ndarray:
+    """(R, R[, C]) float32 crop of an (H, W[, C]) image, zero outside it: the square
+    rows top .. top + size, columns left .. left + size, area-averaged when shrinking and
+    bilinear when enlarging (the same resampling as compose.crop_square)."""
+    height, width = image.shape[:2]
+    region = np.zeros((crop.size, crop.size) + image.shape[2:], np.float32)
+    top, left = max(crop.top, 0), max(crop.left, 0)
+    bottom, right = min(crop.top + crop.size, height), min(crop.left + crop.size, width)
+    if bottom > top and right > left:
+        region[top - crop.top:bottom - crop.top, left - crop.left:right - crop.left] = image[top:bottom, left:right]
+    interpolation = cv2.INTER_AREA if crop.size >= crop.resolution else cv2.INTER_LINEAR
+    out = cv2.resize(region, (crop.resolution, crop.resolution), interpolation=interpolation)
+    return out.reshape((crop.resolution, crop.resolution) + image.shape[2:])
+
+
+def crop_to_image(points, crop: CropRect) -> np.ndarray:
+    """(N, 2) (col, row) pixels of a crop -> pixels of the image it was cut from (pixel
+    centres map to pixel centres: x_image = left + (x + 0.5) size / resolution - 0.5)."""
+    s = crop.size / crop.resolution
+    return (np.asarray(points, np.float64) + 0.5) * s - 0.5 + np.array([crop.left, crop.top])
+
+
+def image_to_crop(points, crop: CropRect) -> np.ndarray:
+    """Inverse of `crop_to_image`."""
+    s = crop.size / crop.resolution
+    return (np.asarray(points, np.float64) - np.array([crop.left, crop.top]) + 0.5) / s - 0.5
+
+
+def canonical_crop(landmarks_image, resolution: int) -> CropRect:
+    """The square the landmark net saw most often around landmarks (N, 2) in image pixels."""
+    lo, hi = landmarks_image.min(axis=0), landmarks_image.max(axis=0)
+    side = max(1, int(round(CANONICAL_SCALE * float(np.max(hi - lo)))))
+    cx = (lo[0] + hi[0]) / 2.0
+    cy = (lo[1] + hi[1]) / 2.0 - CANONICAL_SHIFT_UP * side  # rows grow downward
+    return CropRect(left=int(round(cx + 0.5 - side / 2.0)), top=int(round(cy + 0.5 - side / 2.0)),
+                    size=side, resolution=resolution)
+
+
+def face_landmarks(image, crop: CropRect, landmark_net, passes: int = 2) -> np.ndarray:
+    """(68, 2) float64 landmarks in pixels of `crop` (face_crop_rect's): the net on that
+    crop, then (passes - 1) times on the canonical re-crop around its last answer."""
+    image = np.asarray(image, np.float32)
+    points = crop_to_image(landmark_net.predict(cut_crop(image, crop)), crop)
+    for _ in range(passes - 1):
+        again = canonical_crop(points, crop.resolution)
+        points = crop_to_image(landmark_net.predict(cut_crop(image, again)), again)
+    return image_to_crop(points, crop)
+
+
+def fit_face_in_crop(image_crop, mask_crop, landmark_net, *, model: FaceModel | None = None,
+                     image_rect=PERSON_CROP_RECT, depth=None, passes: int = 2,
+                     landmark_sigma_px: float = LANDMARK_SIGMA_PX,
+                     max_residual_px: float = MAX_RESIDUAL_PX):
+    """Detect the face in the person crop, regress its landmarks, fit the face model.
+
+    image_crop (R, R, 3) float32 linear RGB; mask_crop (R, R) person alpha or None;
+    landmark_net: relightcli.nets.landmarks.LandmarkNet; image_rect: the crop's world
+    rectangle (x0, x1, y0, y1), by default the working crop's [-1, 1]^2; depth: optional
+    (R, R) world z of the visible surface (e.g. the geometry net's front depth), which
+    places the face along z. Returns (FaceFit, info) with the fit in the face crop's frame
+    (`fit.rect`, 128x128: `info["crop"]` = [left, top, size, resolution] in pixels of the
+    person crop), or (None, info) with info["skipped"] saying why (no face, too small, a fit
+    that does not explain the landmarks).
+    """
+    model = model or FaceModel.load()
+    box, reason = detect_face(image_crop, mask_crop, model=model)
+    if box is None:
+        return None, {"skipped": reason}
+    crop = face_crop_rect(box, resolution=landmark_net.crop_size)
+    info = {"box": [round(float(v), 1) for v in (box.left, box.top, box.width, box.height)],
+            "crop": [crop.left, crop.top, crop.size, crop.resolution]}
+    landmarks = face_landmarks(image_crop, crop, landmark_net, passes)
+    rect = crop.world_rect(image_rect, np.shape(image_crop))
+    face_depth = None if depth is None else cut_crop(np.asarray(depth, np.float32), crop)
+    fit = fit_face(landmarks, model, rect, (crop.resolution, crop.resolution), depth=face_depth,
+                   landmark_sigma_px=landmark_sigma_px)
+    yaw, pitch, roll = rotation_angles_deg(fit.rotation)
+    info.update(landmarks=int(landmarks.shape[0]), inliers=int(fit.inliers.sum()),
+                residual_px=round(fit.residual_px, 2),
+                angles_deg=[round(yaw, 1), round(pitch, 1), round(roll, 1)])
+    problem = _implausible(fit, landmarks, yaw, pitch, max_residual_px)
+    if problem:
+        info["skipped"] = f"{problem}: face stage skipped"
+        return None, info
+    return fit, info
+
+
+def _implausible(fit: FaceFit, landmarks, yaw: float, pitch: float, max_residual_px: float) -> str:
+    """Why a fit is not trusted ("" when it is)."""
+    if not fit.residual_px <= max_residual_px:
+        return (f"face model fit residual {fit.residual_px:.1f} px > {max_residual_px} px "
+                "(landmarks the face model does not explain)")
+    if abs(yaw) > MAX_ABS_YAW_DEG or abs(pitch) > MAX_ABS_PITCH_DEG:
+        return f"fitted head pose (yaw {yaw:.0f}, pitch {pitch:.0f} degrees) outside the trusted range"
+    extent = float(np.max(landmarks.max(axis=0) - landmarks.min(axis=0)))
+    if extent < MIN_FACE_SHARE * fit.resolution[0]:
+        return f"landmarks span {extent:.0f} px of the {fit.resolution[0]} px face crop (no face found in it)"
+    return ""
+
+
+def render_face_shading(fit: FaceFit, light, *, resolution: int | None = None, spp: int = 64,
+                        target_error: float | None = 0.02, seed: int = 0, threads: int = 1):
+    """Coarse face shading: the fitted head ray-traced under `light` (an EnvironmentLight in
+    the camera frame, DESIGN.md) by `shade_environment`, pixel-aligned with the face crop.
+
+    resolution: the square's side (default the fit's crop, 128; larger renders the same
+    rectangle finer). The whole fitted head (face, scalp, neck) is in the scene, so it
+    shadows itself, but nothing else is (no body, no hair). Returns (shading (S, S, 3)
+    float32 linear, DESIGN.md units, 0 where the head is not seen; face_mask (S, S) bool:
+    pixels that see the face proper, not the neck or the back of the head).
+    """
+    from relightcli.render import Scene, render_pixel_geometry, shade_environment
+
+    size = int(resolution or fit.resolution[0])
+    mesh = face_mesh(fit)
+    with Scene.from_trimesh(mesh, threads=threads) as scene:
+        geometry = render_pixel_geometry(scene, fit.rect, (size, size))
+        result = shade_environment(scene, geometry, light, spp=spp, target_error=target_error,
+                                   seed=seed, workers=threads)
+        face_mask = _face_pixels(scene, fit, size)
+    return result.mean, face_mask & geometry.mask
+
+
+def _face_pixels(scene, fit: FaceFit, size: int) -> np.ndarray:
+    """(S, S) bool: the primary ray of the pixel first hits a face-region triangle."""
+    from relightcli.render import pixel_centres
+
+    centres = pixel_centres(fit.rect, (size, size)).reshape(-1, 2)
+    origins = np.empty((centres.shape[0], 3))
+    origins[:, :2] = centres - scene.centre[:2]
+    origins[:, 2] = scene.bounds_local[1, 2] + 0.01 * scene.diagonal
+    directions = np.tile([0.0, 0.0, -1.0], (origins.shape[0], 1))
+    prim = scene.intersect(origins, directions).prim
+    on_face = np.all(fit.model.face_region[fit.model.triangles], axis=1)
+    return ((prim >= 0) & on_face[np.maximum(prim, 0)]).reshape(size, size)
+
+
+__all__ = ["CropRect", "FaceBox", "FaceFit", "FaceModel", "canonical_crop", "crop_to_image",
+           "cut_crop", "detect_face", "face_crop_rect", "face_landmarks", "face_mesh", "fit_face",
+           "fit_face_in_crop", "image_to_crop", "pixel_to_world", "render_face_shading",
+           "rotation_angles_deg", "rotation_matrix", "transform", "world_to_pixel"]

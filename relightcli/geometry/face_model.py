@@ -164,6 +164,17 @@ def rotation_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
     return rz @ rx @ ry
 
 
+def rotation_angles_deg(rotation) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees of a rotation R = Rz(roll) Rx(pitch) Ry(yaw), the inverse
+    of `rotation_matrix` for |pitch| < 90. Its third row is (-cos p sin y, sin p, cos p cos y)
+    and its second column (-sin r cos p, cos r cos p, sin p)."""
+    r = np.asarray(rotation, dtype=np.float64)
+    pitch = np.arcsin(np.clip(r[2, 1], -1.0, 1.0))
+    yaw = np.arctan2(-r[2, 0], r[2, 2])
+    roll = np.arctan2(-r[0, 1], r[1, 1])
+    return tuple(float(v) for v in np.degrees([yaw, pitch, roll]))
+
+
 def rotation_angle_deg(a, b) -> float:
     """Angle in degrees of the rotation a^T b between two (3, 3) rotations."""
     cos = (np.trace(np.asarray(a).T @ np.asarray(b)) - 1.0) / 2.0

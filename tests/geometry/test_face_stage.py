@@ -1,0 +1,169 @@
+"""The face stage around the fit: crop geometry, the skip paths, and the coarse face shading.
+(The landmark net's own recovery tests are in test_face_landmarks.py.)"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from relightcli.geometry.face import (
+    canonical_crop,
+    crop_to_image,
+    cut_crop,
+    fit_face_in_crop,
+    image_to_crop,
+    render_face_shading,
+)
+from relightcli.geometry.face_detect import CropRect
+from relightcli.geometry.face_fit import fit_face
+from relightcli.geometry.face_model import FaceModel, rotation_matrix, transform, world_to_pixel
+from relightcli.render import EnvironmentLight
+
+PHOTOS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "photos"
+RECT = (-0.5, 0.5, 1.2, 2.2)
+SCALE = 0.05  # world units per cm: 6.4 px per cm on the 128 crop
+
+
+@pytest.fixture(scope="module")
+def model():
+    return FaceModel.load()
+
+
+class NeverCalled:
+    """A landmark net stand-in for the paths that must skip before running it."""
+
+    crop_size = 128
+
+    def predict(self, face_crop):
+        raise AssertionError("the landmark net ran although there is no face")
+
+
+class RandomPoints:
+    """A landmark net stand-in that answers scattered points: nothing a face explains."""
+
+    crop_size = 128
+
+    def predict(self, face_crop):
+        return np.random.default_rng(0).uniform(10, 118, (68, 2))
+
+
+# --- crops -----------------------------------------------------------------------------------
+
+def test_crop_and_image_pixels_map_back_and_forth():
+    crop = CropRect(left=-7, top=13, size=90, resolution=128)
+    points = np.random.default_rng(1).uniform(-5, 130, (20, 2))
+    np.testing.assert_allclose(image_to_crop(crop_to_image(points, crop), crop), points, atol=1e-9)
+
+
+def test_cut_crop_is_pixel_aligned_with_the_mapping():
+    # A linear ramp image: its value is the column, so a crop pixel must read the image
+    # column its centre maps to (bilinear enlargement is exact on a ramp)
+    cols = np.tile(np.arange(200, dtype=np.float32), (200, 1))
+    image = np.stack([cols, cols.T, cols], axis=-1)
+    crop = CropRect(left=40, top=50, size=64, resolution=128)
+    cut = cut_crop(image, crop)
+    inner = (slice(4, -4), slice(4, -4))
+    rows, columns = np.mgrid[0:128, 0:128]
+    mapped = crop_to_image(np.stack([columns.ravel(), rows.ravel()], 1), crop).reshape(128, 128, 2)
+    np.testing.assert_allclose(cut[..., 0][inner], mapped[..., 0][inner], atol=1e-3)
+    np.testing.assert_allclose(cut[..., 1][inner], mapped[..., 1][inner], atol=1e-3)
+
+
+def test_cut_crop_pads_outside_the_image_with_zeros():
+    image = np.ones((80, 40, 3), np.float32)
+    cut = cut_crop(image, CropRect(left=-40, top=0, size=80, resolution=80))
+    assert np.all(cut[:, :38] == 0) and np.all(cut[:, 42:] == 1)
+
+
+def test_canonical_crop_centres_the_landmarks_a_little_low():
+    points = np.array([[10.0, 20.0], [50.0, 20.0], [30.0, 60.0]])
+    crop = canonical_crop(points, 128)
+    assert crop.size == round(2.1 * 40)
+    centre = np.array([crop.left + crop.size / 2 - 0.5, crop.top + crop.size / 2 - 0.5])
+    # the crop centre sits above the landmarks' box centre (30, 40): it includes the forehead
+    assert abs(centre[0] - 30) <= 0.5 and 40 - 0.08 * crop.size - 0.5 <= centre[1] < 40
+
+
+# --- skip paths ------------------------------------------------------------------------------
+
+def test_no_face_skips_before_the_landmark_net(model):
+    image = np.full((256, 256, 3), 0.3, np.float32)
+    fit, info = fit_face_in_crop(image, None, NeverCalled(), model=model)
+    assert fit is None and "no frontal or profile face" in info["skipped"]
+
+
+def test_back_of_the_head_skips(model):
+    faces = pytest.importorskip("export.factory.faces")
+    from export.factory import camera_model, lighting
+
+    spec = faces.sample_spec(np.random.default_rng(3), model, lighting.hdri_splits()["test"])
+    spec = dataclasses.replace(spec, angles_deg=(180.0, 5.0, 0.0), crop_scale=3.0)
+    photo = camera_model.decode_photo(faces.render_face(model, spec)["image"])
+    fit, info = fit_face_in_crop(photo, None, NeverCalled(), model=model)
+    assert fit is None and "skipped" in info
+
+
+def test_landmarks_no_face_explains_skip_with_the_reason(model):
+    from relightcli.io.images import read_image
+
+    path = PHOTOS / "pexels_woman_with_dog.jpg"
+    if not path.is_file():
+        pytest.skip(f"sample photo not found: {path}")
+    fit, info = fit_face_in_crop(read_image(path).rgb, None, RandomPoints(), model=model)
+    assert fit is None
+    assert "face stage skipped" in info["skipped"] and info["residual_px"] > 0
+    assert info["landmarks"] == 68 and len(info["crop"]) == 4
+
+
+# --- coarse face shading ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def fitted(model):
+    identity = np.random.default_rng(4).normal(0.0, 1.0, model.n_identity)
+    rotation = rotation_matrix(20.0, -5.0, 5.0)
+    points = transform(model.landmarks(identity), SCALE, rotation, np.array([0.0, 1.7, 0.0]))
+    pixels = world_to_pixel(points, RECT, (128, 128))
+    return fit_face(pixels, model, RECT, (128, 128), landmark_sigma_px=0.1), pixels
+
+
+def test_face_shading_under_a_constant_sky_is_the_furnace_value(fitted):
+    fit, _ = fitted
+    radiance = np.array([0.5, 1.0, 2.0], np.float32)
+    shading, face = render_face_shading(fit, EnvironmentLight(np.broadcast_to(radiance, (8, 16, 3))),
+                                        spp=16, target_error=None)
+    assert shading.shape == (128, 128, 3) and face.shape == (128, 128)
+    assert np.all(np.isfinite(shading)) and np.all(shading >= 0)
+    ratio = shading[face] / radiance
+    # Unoccluded skin sees the whole sky (ratio 1); eye sockets, nostrils and the parts the
+    # nose shades see less, never more
+    assert np.median(ratio) > 0.85 and ratio.max() <= 1.0 + 1e-4
+
+
+def test_face_shading_is_aligned_with_the_fitted_landmarks(fitted):
+    fit, pixels = fitted
+    shading, face = render_face_shading(fit, EnvironmentLight(np.ones((8, 16, 3), np.float32)),
+                                        spp=64, target_error=None)
+    lit = shading.sum(axis=2) > 0
+    # the face is where the head is lit (a few pixels in the closed mouth's slit and the
+    # nostrils see no sky)
+    assert np.mean(face & ~lit) < 0.001
+    inner = np.rint(pixels[17:]).astype(int)          # brows, nose, eyes, mouth
+    assert face[inner[:, 1], inner[:, 0]].all()
+    # The same face region seen through the camera module on the face-only mesh
+    from relightcli.geometry.face_fit import face_mesh
+    from relightcli.render import Scene, render_pixel_geometry
+
+    seen = render_pixel_geometry(Scene.from_trimesh(face_mesh(fit, face_only=True)), RECT, (128, 128)).mask
+    assert np.sum(face & seen) / np.sum(face | seen) > 0.97
+
+
+def test_face_shading_at_a_finer_resolution_covers_the_same_square(fitted):
+    fit, _ = fitted
+    light = EnvironmentLight(np.ones((8, 16, 3), np.float32))
+    _, coarse = render_face_shading(fit, light, spp=4, target_error=None)
+    _, fine = render_face_shading(fit, light, resolution=256, spp=4, target_error=None)
+    downsampled = fine.reshape(128, 2, 128, 2).mean(axis=(1, 3))
+    assert np.mean(np.abs(downsampled - coarse)) < 0.02
