@@ -62,6 +62,7 @@ def run_batch(inputs: Path, out: Path, extra: list[str]) -> dict:
 
         half = rss[len(rss) // 2:]
         result["rss_growth_mb_per_100_images"] = float(np.polyfit(np.arange(len(half)), half, 1)[0] * 100)
+        result["worker_rss_mb_every_10th"] = rss[::10]
     return result
 
 
