@@ -138,6 +138,17 @@ def write_card(root, card: dict) -> Path:
     return path
 
 
+def read_card(card_path: Path, format_version: int, generate_fix: str) -> dict:
+    """A dataset card (JSON), checked to exist and to have the format this reader reads."""
+    if not card_path.is_file():
+        raise InputError("no dataset card", path=card_path, fix=generate_fix)
+    card = json.loads(card_path.read_text())
+    if card.get("format_version") != format_version:
+        raise InputError(f"format version {card.get('format_version')}, this reader reads "
+                         f"{format_version}", path=card_path, fix="regenerate the dataset")
+    return card
+
+
 class Dataset:
     """A dataset folder opened for reading: `.card`, `.ids(split)`, `.load(split, id)`."""
 
@@ -145,15 +156,8 @@ class Dataset:
 
     def __init__(self, root):
         self.root = Path(root)
-        card_path = self.root / CARD_NAME
-        if not card_path.is_file():
-            raise InputError("no dataset card", path=card_path,
-                             fix="generate the dataset with python -m export.factory.generate")
-        self.card = json.loads(card_path.read_text())
-        if self.card.get("format_version") != FORMAT_VERSION:
-            raise InputError(f"format version {self.card.get('format_version')}, this reader "
-                             f"reads {FORMAT_VERSION}", path=card_path,
-                             fix="regenerate the dataset")
+        self.card = read_card(self.root / CARD_NAME, FORMAT_VERSION,
+                              "generate the dataset with python -m export.factory.generate")
 
     def ids(self, split: str) -> list[str]:
         """Sorted ids of the complete samples of a split."""

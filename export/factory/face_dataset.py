@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from export.factory import camera_model, faces, lighting
-from relightcli.errors import InputError
+from export.factory.dataset import read_card
 from relightcli.geometry.face_model import FaceModel
 
 FORMAT_VERSION = 1
@@ -155,14 +155,8 @@ class FaceLandmarkDataset:
 
     def __init__(self, root):
         self.root = Path(root)
-        card_path = self.root / CARD_NAME
-        if not card_path.is_file():
-            raise InputError("no face dataset card", path=card_path,
-                             fix="generate it with python -m export.factory.face_dataset")
-        self.card = json.loads(card_path.read_text())
-        if self.card.get("format_version") != FORMAT_VERSION:
-            raise InputError(f"face dataset format {self.card.get('format_version')}, this reader "
-                             f"reads {FORMAT_VERSION}", path=card_path, fix="regenerate the dataset")
+        self.card = read_card(self.root / CARD_NAME, FORMAT_VERSION,
+                              "generate it with python -m export.factory.face_dataset")
         self._shards: dict[str, dict] = {}
 
     def arrays(self, split: str) -> dict:
