@@ -60,8 +60,13 @@ def run_batch(inputs: Path, out: Path, extra: list[str]) -> dict:
     if len(rss) >= 10:  # growth: slope of RSS over the second half of the batch (after warm-up)
         import numpy as np
 
-        half = rss[len(rss) // 2:]
-        result["rss_growth_mb_per_100_images"] = float(np.polyfit(np.arange(len(half)), half, 1)[0] * 100)
+        half = np.asarray(rss[len(rss) // 2:])
+        (slope, _), cov = np.polyfit(np.arange(half.size), half, 1, cov=True)
+        result["rss_growth_mb_per_100_images"] = float(slope * 100)
+        result["rss_growth_stderr_mb_per_100_images"] = float(np.sqrt(cov[0, 0]) * 100)
+        quarters = np.array_split(np.asarray(rss), 4)
+        result["worker_rss_mb_quarter_means"] = [round(float(q.mean()), 1) for q in quarters]
+        result["worker_rss_mb_quarter_max"] = [round(float(q.max()), 1) for q in quarters]
         result["worker_rss_mb_every_10th"] = rss[::10]
     return result
 

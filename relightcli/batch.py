@@ -5,6 +5,8 @@ Library code: it raises and returns; the CLI prints. One failing item never stop
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import json
 import multiprocessing
 import os
@@ -255,10 +257,32 @@ def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool) -> ItemRe
             report = ItemReport(str(item.input), error=f"{item.input}: out of memory", exit_code=EXIT_ITEMS_FAILED)
     report.warnings.extend(str(w.message) for w in caught if issubclass(w.category, RelightWarning))
     report.seconds.setdefault("total", round(time.perf_counter() - start, 4))
+    release_free_memory()
     rss = resident_memory_mb()
     if rss is not None:
         report.details["worker_rss_mb"] = rss
     return report
+
+
+def release_free_memory() -> bool:
+    """Hand the heap's free pages back to the OS (glibc's malloc_trim); False where there is none.
+
+    An item allocates and frees a few hundred MB of arrays of sizes that change with the photo.
+    glibc serves many of them from its heap (its mmap threshold rises after the first large
+    free), and the free holes stay resident: without a trim a long batch's RSS creeps up by
+    tens of MB although nothing leaks. Trimming after each item costs about a millisecond."""
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        name = ctypes.util.find_library("c")
+        libc = ctypes.CDLL(name) if name else None
+        _MALLOC_TRIM = getattr(libc, "malloc_trim", False) or False
+    if not _MALLOC_TRIM:
+        return False
+    _MALLOC_TRIM(0)
+    return True
+
+
+_MALLOC_TRIM = None  # the libc function, looked up on first use; False when the libc has none
 
 
 def resident_memory_mb() -> float | None:

@@ -31,26 +31,35 @@ _FIX_ASPECT = "use an equirectangular (latitude-longitude) map with width = 2 x 
 # Rec. 709 / sRGB primaries: luminance of linear RGB
 
 
-def uv_to_direction(u, v):
+def _real(x) -> np.ndarray:
+    """x as a float32 array when it is one, else float64."""
+    x = np.asarray(x)
+    return x if x.dtype == np.float32 else x.astype(np.float64, copy=False)
+
+
+def uv_to_direction(u, v, dtype=np.float64):
     """Unit direction for texel coordinates.
 
-    u, v: arrays of the same shape, in [0, 1]. Returns (..., 3) float64 unit vectors.
+    u, v: arrays of the same shape, in [0, 1]. Returns (..., 3) unit vectors of `dtype`: the
+    angles are formed in float64 (theta from the nearer pole, so both poles keep full
+    relative precision), the trig runs in `dtype` (float32 for the ray tracer: ~10x faster).
     """
-    theta = np.pi * np.asarray(v, dtype=np.float64)
-    phi = 2.0 * np.pi * (np.asarray(u, dtype=np.float64) - 0.5)
-    sin_theta = np.sin(theta)
-    return np.stack(
-        [sin_theta * np.sin(phi), np.cos(theta), -sin_theta * np.cos(phi)], axis=-1
-    )
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    theta_near = (np.pi * np.minimum(v, 1.0 - v)).astype(dtype)
+    sin_theta = np.sin(theta_near)
+    cos_theta = np.where(v <= 0.5, 1, -1).astype(dtype) * np.cos(theta_near)
+    phi = (2.0 * np.pi * (u - 0.5)).astype(dtype)
+    return np.stack([sin_theta * np.sin(phi), cos_theta, -sin_theta * np.cos(phi)], axis=-1)
 
 
 def direction_to_uv(d):
     """Texel coordinates of directions, the inverse of `uv_to_direction`.
 
     d: (..., 3) array (need not be unit length, must be non-zero). Returns (u, v), each (...)
-    float64, u in [0, 1), v in [0, 1].
+    float32 for float32 directions, float64 otherwise; u in [0, 1), v in [0, 1].
     """
-    d = np.asarray(d, dtype=np.float64)
+    d = _real(d)
     # theta = atan2(|(x, z)|, y): accurate near the poles, where arccos(y) loses digits
     v = np.arctan2(np.hypot(d[..., 0], d[..., 2]), d[..., 1]) / np.pi
     # phi = atan2(x, -z): x = sin(theta) sin(phi), -z = sin(theta) cos(phi)

@@ -73,6 +73,10 @@ class EnvironmentLight:
         cdf = np.cumsum(energy.ravel()[self._lit])
         self._cdf = np.concatenate([[0.0], cdf / cdf[-1]])
         self._cdf[-1] = 1.0
+        # What sampling reads per lit texel, gathered once: row, column, density, radiance
+        self._lit_row, self._lit_col = (a.astype(np.int32) for a in np.divmod(self._lit, width))
+        self._lit_pdf_uv = self.texel_pdf_uv.ravel()[self._lit]
+        self._lit_radiance = self.radiance.reshape(-1, 3)[self._lit]
         flat = self.radiance.reshape(-1, 3)
         spread = flat.max(axis=0) - flat.min(axis=0)
         self.is_constant = bool(np.all(spread <= CONSTANT_TOLERANCE * np.maximum(flat.max(axis=0), 1e-30)))
@@ -132,9 +136,11 @@ class EnvironmentLight:
         directions, pdf, _ = self.sample_radiance(u)
         return directions, pdf
 
-    def sample_radiance(self, u):
+    def sample_radiance(self, u, dtype=np.float64):
         """`sample`, plus the radiance (..., 3) float32 from each sampled direction (read
-        from the sampled texel, no second lookup)."""
+        from the sampled texel, no second lookup). dtype: the directions' precision; the
+        renderer asks for float32 (what the tracer takes; trig ~10x faster), which changes
+        directions and the pdf's sin(theta) by float32 round-off, never the texel."""
         u = np.asarray(u, dtype=np.float64)
         height, width, _ = self.radiance.shape
         u0 = np.minimum(u[..., 0], np.nextafter(1.0, 0.0))
@@ -142,23 +148,25 @@ class EnvironmentLight:
         lo = self._cdf[k]
         span = self._cdf[k + 1] - lo
         offset = np.clip((u0 - lo) / np.where(span > 0, span, 1.0), 0.0, 1.0)
-        row, col = np.divmod(self._lit[k], width)
+        row, col = np.take(self._lit_row, k), np.take(self._lit_col, k)
         x = np.minimum((col + offset) / width, np.nextafter(1.0, 0.0))
         y = np.minimum((row + u[..., 1]) / height, np.nextafter(1.0, 0.0))
-        directions = uv_to_direction(x, y)
-        pdf = _uv_pdf_to_solid_angle(self.texel_pdf_uv[row, col], y)
-        return directions, pdf, self.radiance[row, col]
+        directions = uv_to_direction(x, y, dtype)
+        pdf = _uv_pdf_to_solid_angle(np.take(self._lit_pdf_uv, k), _sin_theta(directions))
+        return directions, pdf, np.take(self._lit_radiance, k, axis=0)
 
     def eval_pdf(self, directions):
         """(`eval`, `pdf`) of unit directions (..., 3) with a single direction lookup."""
         u, v = direction_to_uv(directions)
-        row, col = self._row(v), self._col(u)
-        return self.radiance[row, col], _uv_pdf_to_solid_angle(self.texel_pdf_uv[row, col], v)
+        texel = self._row(v) * self.radiance.shape[1] + self._col(u)
+        return (np.take(self.radiance.reshape(-1, 3), texel, axis=0),
+                _uv_pdf_to_solid_angle(np.take(self.texel_pdf_uv, texel), _sin_theta(directions)))
 
     def pdf(self, directions) -> np.ndarray:
         """Solid-angle pdf (...) float64 of `sample` producing unit directions (..., 3)."""
         u, v = direction_to_uv(directions)
-        return _uv_pdf_to_solid_angle(self.texel_pdf_uv[self._row(v), self._col(u)], v)
+        return _uv_pdf_to_solid_angle(self.texel_pdf_uv[self._row(v), self._col(u)],
+                                      _sin_theta(directions))
 
     def invert_sample(self, directions) -> np.ndarray:
         """The u (..., 2) that `sample` maps to unit directions (..., 3)."""
@@ -213,11 +221,17 @@ def _irradiance_table(radiance, nodes, texel_rows):
     return np.fft.irfft(spectrum, n=width, axis=1)
 
 
-def _uv_pdf_to_solid_angle(pdf_uv, v):
-    # p(w) = p(u, v) / (2 pi^2 sin(theta)); a sample exactly at a pole has no density
-    sin_theta = np.sin(np.pi * np.asarray(v, dtype=np.float64))
-    safe = np.where(sin_theta > 1e-12, sin_theta, 1.0)
-    return np.where(sin_theta > 1e-12, pdf_uv / (2.0 * np.pi * np.pi * safe), 0.0)
+def _uv_pdf_to_solid_angle(pdf_uv, sin_theta):
+    """p(w) = p(u, v) / (2 pi^2 sin(theta)), float64; a sample exactly at a pole has no density."""
+    pole = sin_theta <= 1e-12
+    return np.asarray(pdf_uv, dtype=np.float64) / (2.0 * np.pi * np.pi * np.where(pole, np.inf, sin_theta))
+
+
+def _sin_theta(directions):
+    """sin(theta) of unit directions (..., 3): the length of their (x, z) part (accurate at
+    both poles, in the directions' precision)."""
+    d = np.asarray(directions)
+    return np.hypot(d[..., 0], d[..., 2])
 
 
 def _top_energy_fraction(energy, share: float) -> float:

@@ -4,7 +4,8 @@ shading(p) = (1/pi) * integral over the hemisphere of L(w) V(p, w) max(0, n.w) d
 Every function takes N surface points in the scene's local frame as ray origins (float (N, 3)
 positions already offset by `scene.ray_offset` along the geometric normal, see `ray_origins`),
 unit shading normals `n` and geometric normals `g` facing the outgoing side, and uniform
-samples u (N, k), and returns (N, 3) float64 estimates in radiance units.
+samples u (N, k), and returns (N, 3) estimates in radiance units (float32 per sample for the
+shadow-ray terms; the integrator sums them in float64).
 """
 
 from __future__ import annotations
@@ -33,16 +34,18 @@ def dot(a, b):
 
 
 def cosine_directions(n, u):
-    """Cosine-weighted world directions (N, 3) about unit normals n (N, 3), u (N, 2).
+    """Cosine-weighted world directions (N, 3) about unit normals n (N, 3), u (N, 2), in the
+    normals' precision (float32 normals: float32 directions, as the tracer takes them).
 
     `sample_cosine_hemisphere` in the tangent frame (t, s, n) of Duff et al. 2017 (pbrt's
     CoordinateSystem, branchless), written out per component: no (N, 3, 3) frames.
     """
-    n = np.asarray(n, dtype=np.float64)
-    local = sample_cosine_hemisphere(u)
+    n = np.asarray(n)
+    n = n if n.dtype == np.float32 else n.astype(np.float64, copy=False)
+    local = sample_cosine_hemisphere(np.asarray(u, dtype=n.dtype))
     x, y, z = local[:, 0], local[:, 1], local[:, 2]
     nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
-    sign = np.where(nz >= 0, 1.0, -1.0)
+    sign = np.where(nz >= 0, 1, -1).astype(n.dtype)
     a = -1.0 / (sign + nz)
     b = nx * ny * a
     out = np.empty_like(n)
@@ -71,7 +74,7 @@ def visible(scene: Scene, origins, g, directions, active, max_distance=None):
 
 def direct_lighting(scene, light: EnvironmentLight, points, n, g, u, strategy, max_distance=None,
                     unoccluded=None):
-    """One-sample (two for MIS) estimate of the direct shading (N, 3) float64.
+    """One-sample (two for MIS) estimate of the direct shading (N, 3).
 
     mis: balance heuristic over one environment and one cosine sample,
     sum_i f(w_i) V(w_i) / (p_env(w_i) + p_cos(w_i)), f = L max(0, n.w) / pi.
@@ -89,7 +92,7 @@ def _direct(scene, light, points, n, g, u, strategy, max_distance, complement):
     """`direct_lighting` for the plain strategies; complement: estimate -f (1 - V) instead."""
     if strategy == "mis":
         # Two shadow-ray sets, one per technique; each weighted by the summed pdfs
-        w_env, pdf_env, radiance_env = light.sample_radiance(u[:, 0:2])
+        w_env, pdf_env, radiance_env = light.sample_radiance(u[:, 0:2], np.float32)
         w_cos = cosine_directions(n, u[:, 2:4])
         radiance_cos, pdf_env_cos = light.eval_pdf(w_cos)
         cos_env, cos_cos = dot(n, w_env), dot(n, w_cos)
@@ -100,7 +103,7 @@ def _direct(scene, light, points, n, g, u, strategy, max_distance, complement):
             scene, points, g, w_cos, cos_cos, pdf_env_cos + cosine_hemisphere_pdf(cos_cos),
             radiance_cos, max_distance, complement)
     if strategy == "env":
-        directions, pdf, radiance = light.sample_radiance(u[:, 0:2])
+        directions, pdf, radiance = light.sample_radiance(u[:, 0:2], np.float32)
         cosine = dot(n, directions)
     elif strategy == "cosine":
         directions = cosine_directions(n, u[:, 0:2])
@@ -122,10 +125,13 @@ def _unoccluded_contribution(scene, points, g, directions, cosine, pdf, radiance
                              max_distance, complement=False):
     """f(w) V(w) / pdf per row, f = L max(0, cos) / pi: (N, 3) float64; zero where f or
     the pdf is zero, and no ray is traced there. complement: -f(w) (1 - V(w)) / pdf."""
-    weight = np.where(pdf > 0, np.maximum(cosine, 0.0) * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
+    # float64, as the pdfs: a cosine-sampled weight is then exactly 1 (cos / pi over cos / pi)
+    cosine = np.maximum(cosine, 0.0).astype(np.float64)
+    weight = np.where(pdf > 0, cosine * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
     lit = (radiance[:, 0] > 0) | (radiance[:, 1] > 0) | (radiance[:, 2] > 0)
     v = visible(scene, points, g, directions, (weight > 0) & lit, max_distance)
-    return radiance.astype(np.float64) * (weight * (v - 1.0 if complement else v))[:, None]
+    # float32 per sample (radiance is float32); the running sums are float64
+    return radiance * (weight * (v - 1.0 if complement else v)).astype(np.float32)[:, None]
 
 
 def indirect_lighting(scene, light, points, n, g, u, albedo_at):

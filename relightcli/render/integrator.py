@@ -230,10 +230,12 @@ class _Run:
                  sampler, seed, spp):
         self.scene, self.plan = scene, plan
         self.bounces, self.max_distance = bounces, max_distance
+        # float32 per pixel, as the tracer takes them (the pass loop gathers them every round)
         points = geometry.position.reshape(-1, 3)[pixels].astype(np.float64)
-        self.normals = geometry.normal.reshape(-1, 3)[pixels].astype(np.float64)
-        self.geometric = geometry.geometric_normal.reshape(-1, 3)[pixels].astype(np.float64)
-        self.origins = ray_origins(scene, points, self.geometric)
+        normals = geometry.normal.reshape(-1, 3)[pixels].astype(np.float64)
+        geometric = geometry.geometric_normal.reshape(-1, 3)[pixels].astype(np.float64)
+        self.origins = ray_origins(scene, points, geometric).astype(np.float32)
+        self.normals, self.geometric = normals.astype(np.float32), geometric.astype(np.float32)
         self.albedo_at = _albedo_lookup(albedo, geometry, scene)
         # Tabulated unoccluded shading for the control-variate terms, once per pixel
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
@@ -259,7 +261,7 @@ class _Run:
         if self.sampler == "sobol":
             k = np.arange(first_pass, first_pass + passes)
             points = self.sobol[stream][k // RQMC_GROUPS][:, None, :]
-            u = points + self.shift[stream][:, rows][k % RQMC_GROUPS]
+            u = points + self.shift[stream][(k % RQMC_GROUPS)[:, None], rows[None, :]]
             u -= u >= 1.0  # Cranley-Patterson rotation: (point + shift) mod 1
             return u.reshape(-1, dims)
         out = np.empty((passes, rows.size, dims))
@@ -273,14 +275,14 @@ class _Run:
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
         u = self.uniforms("direct", first_pass, passes, rows)
         tile = np.tile(rows, passes)
-        p, n, g = self.origins[tile], self.normals[tile], self.geometric[tile]
+        p, n, g = (np.take(a, tile, axis=0) for a in (self.origins, self.normals, self.geometric))
         value = np.zeros((tile.size, 3))
         d = 0
         for (light, strategy), unoccluded in zip(self.plan.terms, self.unoccluded):
             k = DIMENSIONS[strategy]
             value += direct_lighting(self.scene, light, p, n, g, u[:, d:d + k], strategy,
                                      self.max_distance,
-                                     None if unoccluded is None else unoccluded[tile])
+                                     None if unoccluded is None else np.take(unoccluded, tile, axis=0))
             d += k
         if self.bounces == 2:
             value += indirect_lighting(self.scene, self.plan.light, p, n, g,

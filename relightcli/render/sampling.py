@@ -17,12 +17,14 @@ INV_4PI = 1.0 / (4.0 * np.pi)
 
 # ---------------------------------------------------------------- cosine hemisphere
 def sample_cosine_hemisphere(u):
-    """Cosine-weighted direction about +z. u: (..., 2). Returns (..., 3) float64 unit vectors.
+    """Cosine-weighted direction about +z. u: (..., 2). Returns (..., 3) unit vectors, float32
+    for float32 u (the renderer's hot path), float64 otherwise.
 
     Polar (Malley) mapping: a point uniform on the unit disc, r = sqrt(u0), phi = 2 pi u1,
     projected up to the hemisphere; pdf = cos(theta) / pi.
     """
-    u = np.asarray(u, dtype=np.float64)
+    u = np.asarray(u)
+    u = u if u.dtype == np.float32 else u.astype(np.float64, copy=False)
     r = np.sqrt(u[..., 0])
     phi = 2.0 * np.pi * u[..., 1]
     z = np.sqrt(np.maximum(0.0, 1.0 - u[..., 0]))

@@ -200,3 +200,20 @@ def test_irradiance_of_one_bright_texel_follows_the_cosine_law():
     exact = _brute_force_irradiance(radiance, normals)
     lit = exact[:, 0] > 0.2 * exact[:, 0].max()
     np.testing.assert_allclose(light.irradiance(normals)[lit], exact[lit], rtol=0.01)
+
+
+@pytest.mark.parametrize("name", sorted(MAPS))
+def test_float32_sampling_picks_the_same_texels(name):
+    """The renderer samples float32 directions (what the tracer takes): the same texel, so
+    the same radiance, as float64 sampling; directions and pdfs differ by float32 round-off."""
+    light = EnvironmentLight(MAPS[name]())
+    u = np.random.default_rng(5).random((5000, 2))
+    d64, pdf64, radiance64 = light.sample_radiance(u)
+    d32, pdf32, radiance32 = light.sample_radiance(u, np.float32)
+    assert d32.dtype == np.float32
+    np.testing.assert_array_equal(radiance32, radiance64)
+    np.testing.assert_allclose(d32, d64, atol=8 * np.finfo(np.float32).eps)
+    np.testing.assert_allclose(pdf32, pdf64, rtol=32 * np.finfo(np.float32).eps)
+    radiance_eval, pdf_eval = light.eval_pdf(d32)
+    np.testing.assert_array_equal(radiance_eval, radiance32)
+    np.testing.assert_allclose(pdf_eval, pdf64, rtol=32 * np.finfo(np.float32).eps)
