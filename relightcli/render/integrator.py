@@ -200,24 +200,28 @@ class _State:
         self.squares[rows] += square_sums
         self.count[rows] += passes
 
-    def estimates(self):
-        """(mean, stderr), each (n, 3) float32."""
-        n = np.maximum(self.count, 1)[:, None].astype(np.float64)
-        mean = self.group_total.sum(axis=1) / n
+    def estimates(self, rows=None):
+        """(mean, stderr), each (n, 3) float32 (or (len(rows), 3) for the pixels `rows`)."""
+        rows = slice(None) if rows is None else rows
+        n = np.maximum(self.count[rows], 1)[:, None].astype(np.float64)
+        total = self.group_total[rows]
+        mean = total.sum(axis=1) / n
         if self.groups == 1:
-            variance = np.maximum(self.squares / n - mean ** 2, 0.0) / np.maximum(n - 1, 1)
+            variance = np.maximum(self.squares[rows] / n - mean ** 2, 0.0) / np.maximum(n - 1, 1)
         else:
             r = self.groups
-            group_mean = self.group_total / (n[:, :, None] / r)
+            group_mean = total / (n[:, :, None] / r)
             variance = np.square(group_mean - mean[:, None, :]).sum(axis=1) / (r * (r - 1))
         return mean.astype(np.float32), np.sqrt(variance).astype(np.float32)
 
-    def relative_error(self):
-        """(n,) stderr / mean on the channel average; pixels darker than DARK_FLOOR x the
-        median are measured against that floor (they cannot hold up the render)."""
-        mean, stderr = self.estimates()
+    def relative_error(self, rows=None):
+        """stderr / mean on the channel average, (n,) or (len(rows),); pixels darker than
+        DARK_FLOOR x the median (over all pixels) are measured against that floor (they
+        cannot hold up the render)."""
+        lum_all = self.group_total.sum(axis=(1, 2)) / (3.0 * np.maximum(self.count, 1))
+        floor = DARK_FLOOR * np.median(lum_all) if lum_all.size else 0.0
+        mean, stderr = self.estimates(rows)
         lum = mean.mean(axis=1)
-        floor = DARK_FLOOR * np.median(lum) if lum.size else 0.0
         if floor > 0:
             return stderr.mean(axis=1) / np.maximum(lum, floor)
         return _relative(lum, stderr.mean(axis=1), 0.0)
@@ -324,7 +328,7 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
                 # What is left buys one more group of passes for the pixels with most error
                 count = int(0.9 * left / (seconds_per_pass_pixel * state.groups))  # margin: a partial round costs more per pixel
                 if count >= 1:
-                    worst = active[np.argsort(-state.relative_error()[active], kind="stable")[:count]]
+                    worst = active[np.argsort(-state.relative_error(active), kind="stable")[:count]]
                     worst.sort()
                     state.add(worst, statistics(done_passes, state.groups, worst, state.groups),
                               state.groups)
@@ -334,7 +338,7 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
         seconds_per_pass_pixel = (time.perf_counter() - tick) / (passes * active.size)
         done_passes += passes
         if target_error is not None:
-            active = active[state.relative_error()[active] > target_error]
+            active = active[state.relative_error(active) > target_error]
 
 
 def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, state, active,
@@ -349,7 +353,7 @@ def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, state, 
         return int(min(min_spp, spp, cap))
     if target_error is None:
         return int(min(spp - done, cap, done))
-    rel = state.relative_error()[active]
+    rel = state.relative_error(active)
     need = np.median(done * ((rel / target_error) ** 2 - 1.0))
     return int(min(max(np.ceil(need), done // 2, 1), done, spp - done, cap))
 
