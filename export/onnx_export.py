@@ -176,7 +176,9 @@ def quantize_int8(src: str | Path, dst: str | Path, calibration: Iterable[dict[s
 
     dst = Path(dst)
     prepared = dst.with_suffix(".prep.onnx")
-    quant_pre_process(str(src), str(prepared))
+    # symbolic shape inference cannot resolve the dynamic H x W of these nets; ONNX shape
+    # inference suffices for the QDQ pass
+    quant_pre_process(str(src), str(prepared), skip_symbolic_shape=True)
     try:
         quantize_static(str(prepared), str(dst), _CalibrationReader(calibration),
                         quant_format=QuantFormat.QDQ, per_channel=True,
