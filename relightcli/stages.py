@@ -143,14 +143,20 @@ def stage_reconstruct(frame: Frame, options, models: Models) -> None:
 
 def build_scene(frame: Frame, options) -> None:
     """The Embree scene and the camera's primary hits: built once per photo, whatever the
-    number of lightings (a turntable re-lights the same scene)."""
+    number of lightings (a turntable re-lights the same scene).
+
+    The hits are shaded with the normal net's normals where they face the mesh's side: the
+    mesh (from the depth maps, smoothed) decides what is occluded, the net's normals the
+    cosine term. Measured on the 20 eval scenes (true mask, no refinement): shading 16.3 ->
+    17.0 dB, relit 14.7 -> 15.0 dB against the mesh's own normals."""
     from relightcli.render.camera import render_pixel_geometry
     from relightcli.render.scene import Scene
 
     # One tracing process: the camera's rays take ~50 ms on one core, and the integrator
     # samples on its own forked workers; a tracing pool would spawn a process per photo
     frame.scene = Scene.from_trimesh(frame.mesh, threads=1)
-    frame.hits = render_pixel_geometry(frame.scene, compose.CROP_RECT, (options.resolution,) * 2)
+    hits = render_pixel_geometry(frame.scene, compose.CROP_RECT, (options.resolution,) * 2)
+    frame.hits = hits.with_shading_normals(frame.geometry.front_normal, frame.crop_mask > 0.5)
     frame.notes.setdefault("scene_builds", 0)
     frame.notes["scene_builds"] += 1
 

@@ -155,6 +155,13 @@ def test_raytraced_ball_under_constant_light_is_white_furnace():
     assert frame.coarse_shading[inside].max() <= 1.5 * (1 + 1e-4)
     assert frame.coarse_shading[inside].min() > 0.0
     assert frame.notes["raytrace"]["rays"] > 0
+    # The cosine term uses the normal net's normals (the ball's), the mesh only for visibility
+    length = np.linalg.norm(frame.geometry.front_normal, axis=-1, keepdims=True)
+    net = frame.geometry.front_normal / np.maximum(length, 1e-6)
+    used = frame.hits.mask & inside & (np.sum(net * frame.hits.geometric_normal, axis=-1) > 0)
+    ball = inside & (length[..., 0] > 0)
+    assert used[ball].mean() > 0.9
+    np.testing.assert_allclose(frame.hits.normal[used], net[used], atol=1e-5)
 
 
 def test_uncovered_mask_pixels_take_the_nearest_shading():

@@ -6,7 +6,7 @@ x = x0 + (j + 0.5)(x1 - x0)/W, y = y1 - (i + 0.5)(y1 - y0)/H.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -34,6 +34,17 @@ class PixelGeometry:
     @property
     def resolution(self):
         return self.mask.shape
+
+    def with_shading_normals(self, normals, where) -> "PixelGeometry":
+        """The same hits shaded with other normals (H, W, 3) (normalised here) at the pixels
+        `where` (H, W) bool that hit and whose new normal lies on the geometric normal's side;
+        the mesh's shading normals elsewhere. Positions and geometric normals (ray origins,
+        the horizon) stay the mesh's."""
+        n = np.asarray(normals, dtype=np.float32)
+        length = np.linalg.norm(n, axis=-1, keepdims=True)
+        n = n / np.where(length > 0, length, 1.0)
+        use = where & self.mask & (length[..., 0] > 0) & (np.sum(n * self.geometric_normal, axis=-1) > 0)
+        return replace(self, normal=np.where(use[..., None], n, self.normal).astype(np.float32))
 
 
 def pixel_centres(rect, resolution):

@@ -110,3 +110,22 @@ def test_broken_meshes_raise_input_error(bad):
         faces = np.zeros((0, 3), int)
     with pytest.raises(InputError):
         Scene(vertices, faces)
+
+
+def test_other_shading_normals_replace_the_mesh_normals_only_where_allowed():
+    scene = Scene(*quad(0.0, 2.0, 0.0, 2.0, 0.0))   # fills the frame
+    geometry = render_pixel_geometry(scene, (0.0, 2.0, 0.0, 2.0), (4, 4))
+    assert geometry.mask.all()
+    tilted = np.zeros((4, 4, 3), np.float32)
+    tilted[...] = (0.0, 3.0, 4.0)                    # unit after normalising: (0, 0.6, 0.8)
+    tilted[0, 0] = (0.0, 0.0, -1.0)                  # faces away from the surface: refused
+    where = np.ones((4, 4), bool)
+    where[3, 3] = False                              # not asked for
+    shaded = geometry.with_shading_normals(tilted, where)
+    inside = geometry.mask.copy()
+    inside[0, 0] = inside[3, 3] = False
+    np.testing.assert_allclose(shaded.normal[inside], np.tile([0.0, 0.6, 0.8], (inside.sum(), 1)), atol=1e-6)
+    for kept in ((0, 0), (3, 3)):
+        np.testing.assert_array_equal(shaded.normal[kept], geometry.normal[kept])
+    np.testing.assert_array_equal(shaded.geometric_normal, geometry.geometric_normal)
+    np.testing.assert_array_equal(shaded.position, geometry.position)
