@@ -47,6 +47,14 @@ SUN_SPLIT_FRACTION = 0.1
 DARK_FLOOR = 0.01
 # Share of a time budget kept for assembling the result after the last round
 FINISH_SHARE = 0.05
+# Stopping decisions pool each pixel's error with its POOL_SIZE x POOL_SIZE neighbours: a
+# pixel's own estimate (RQMC_GROUPS group means: 3 degrees of freedom) is too noisy to stop
+# on, and with the control variate a pixel whose few samples missed a rare occluder reports
+# zero error. Neighbours share their occluders, so the pooled estimate sees them.
+POOL_SIZE = 5
+# Under a time budget alone, pixels whose pooled error is below this share of the median
+# stop early (unoccluded pixels are exact with the control variate): the rest get their passes
+NEGLIGIBLE_SHARE = 0.25
 
 
 @dataclass
@@ -200,28 +208,24 @@ class _State:
         self.squares[rows] += square_sums
         self.count[rows] += passes
 
-    def estimates(self, rows=None):
-        """(mean, stderr), each (n, 3) float32 (or (len(rows), 3) for the pixels `rows`)."""
-        rows = slice(None) if rows is None else rows
-        n = np.maximum(self.count[rows], 1)[:, None].astype(np.float64)
-        total = self.group_total[rows]
-        mean = total.sum(axis=1) / n
+    def estimates(self):
+        """(mean, stderr), each (n, 3) float32."""
+        n = np.maximum(self.count, 1)[:, None].astype(np.float64)
+        mean = self.group_total.sum(axis=1) / n
         if self.groups == 1:
-            variance = np.maximum(self.squares[rows] / n - mean ** 2, 0.0) / np.maximum(n - 1, 1)
-        else:
+            variance = np.maximum(self.squares / n - mean ** 2, 0.0) / np.maximum(n - 1, 1)
+        else:  # every group holds count / r passes (passes come in multiples of r)
             r = self.groups
-            group_mean = total / (n[:, :, None] / r)
-            variance = np.square(group_mean - mean[:, None, :]).sum(axis=1) / (r * (r - 1))
+            deviation = self.group_total / (n[:, :, None] / r) - mean[:, None, :]
+            variance = np.einsum("ngc,ngc->nc", deviation, deviation) / (r * (r - 1))
         return mean.astype(np.float32), np.sqrt(variance).astype(np.float32)
 
-    def relative_error(self, rows=None):
-        """stderr / mean on the channel average, (n,) or (len(rows),); pixels darker than
-        DARK_FLOOR x the median (over all pixels) are measured against that floor (they
-        cannot hold up the render)."""
-        lum_all = self.group_total.sum(axis=(1, 2)) / (3.0 * np.maximum(self.count, 1))
-        floor = DARK_FLOOR * np.median(lum_all) if lum_all.size else 0.0
-        mean, stderr = self.estimates(rows)
+    def relative_error(self):
+        """(n,) stderr / mean on the channel average; pixels darker than DARK_FLOOR x the
+        median are measured against that floor (they cannot hold up the render)."""
+        mean, stderr = self.estimates()
         lum = mean.mean(axis=1)
+        floor = DARK_FLOOR * np.median(lum) if lum.size else 0.0
         if floor > 0:
             return stderr.mean(axis=1) / np.maximum(lum, floor)
         return _relative(lum, stderr.mean(axis=1), 0.0)
@@ -245,6 +249,7 @@ class _Run:
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
                            for light, strategy in plan.terms]
         self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
+        self.pixels, self.shape = pixels, geometry.mask.shape
         # Separate streams for direct light and the bounce: adding the bounce leaves the
         # direct-light samples as they were
         self.streams = {"direct": plan.dims, "bounce": BOUNCE_DIMENSIONS if bounces == 2 else 0}
@@ -274,6 +279,18 @@ class _Run:
             rng = np.random.default_rng([self.seed, 3, index, first_pass + k])
             out[k] = rng.random((self.pixel_count, dims))[rows]
         return out.reshape(-1, dims)
+
+    def stopping_error(self, state) -> np.ndarray:
+        """(n,) the error sampling decisions use: each pixel's relative error or the RMS of
+        its neighbourhood's (POOL_SIZE, masked pixels only), whichever is larger."""
+        from scipy.ndimage import uniform_filter
+
+        own = np.minimum(state.relative_error(), 1e3)  # finite: a squared inf would spread
+        squares, weights = np.zeros(self.shape), np.zeros(self.shape)
+        squares.flat[self.pixels], weights.flat[self.pixels] = own ** 2, 1.0
+        pooled = (uniform_filter(squares, POOL_SIZE, mode="constant").flat[self.pixels]
+                  / uniform_filter(weights, POOL_SIZE, mode="constant").flat[self.pixels])
+        return np.maximum(own, np.sqrt(np.maximum(pooled, 0.0)))  # the filter's round-off can dip below 0
 
     def values(self, first_pass, passes, rows):
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
@@ -310,15 +327,16 @@ def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, w
 
 
 def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start, round_rays):
-    """The sampling loop; statistics(first_pass, passes, rows, groups) evaluates a round."""
+    """The sampling loop; statistics(first_pass, passes, rows, groups) evaluates a round.
+    Adaptive decisions use `run.stopping_error` (pooled over neighbours)."""
     adaptive = target_error is not None or time_budget is not None
     active = np.arange(state.count.size)
     done_passes = 0
-    seconds_per_pass_pixel = None
+    seconds_per_pass_pixel = error = None
     rays_per_pass = run.plan.rays_per_pass + (2 if run.bounces == 2 else 0)
     while active.size and done_passes < spp:
         passes = _round_passes(done_passes, spp, active.size, rays_per_pass, adaptive, min_spp,
-                               state, active, target_error, round_rays)
+                               None if error is None else error[active], target_error, round_rays)
         passes = min(_round_up(passes, state.groups), spp - done_passes)
         if time_budget is not None and seconds_per_pass_pixel is not None:
             left = (1.0 - FINISH_SHARE) * time_budget - (time.perf_counter() - start)
@@ -328,7 +346,7 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
                 # What is left buys one more group of passes for the pixels with most error
                 count = int(0.9 * left / (seconds_per_pass_pixel * state.groups))  # margin: a partial round costs more per pixel
                 if count >= 1:
-                    worst = active[np.argsort(-state.relative_error(active), kind="stable")[:count]]
+                    worst = active[np.argsort(-error[active], kind="stable")[:count]]
                     worst.sort()
                     state.add(worst, statistics(done_passes, state.groups, worst, state.groups),
                               state.groups)
@@ -337,15 +355,20 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
         state.add(active, statistics(done_passes, passes, active, state.groups), passes)
         seconds_per_pass_pixel = (time.perf_counter() - tick) / (passes * active.size)
         done_passes += passes
+        if adaptive:
+            error = run.stopping_error(state)
         if target_error is not None:
-            active = active[state.relative_error(active) > target_error]
+            active = active[error[active] > target_error]
+        elif time_budget is not None:
+            active = active[error[active] >= NEGLIGIBLE_SHARE * np.median(error[active])]
 
 
-def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, state, active,
-                  target_error, round_rays):
+def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, error, target_error,
+                  round_rays):
     """Passes in the next round: a first round of min_spp when adaptive, then about as many as
-    the median active pixel still needs, between half and all of what is done so far (so the
-    rounds, each with a fixed cost, grow geometrically), within spp and the ray budget."""
+    the median active pixel still needs (`error`: the active pixels' stopping errors), between
+    half and all of what is done so far (so the rounds, each with a fixed cost, grow
+    geometrically), within spp and the ray budget."""
     cap = max(1, round_rays // (rays_per_pass * n_active))
     if not adaptive:
         return int(min(spp - done, cap))
@@ -353,8 +376,7 @@ def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, state, 
         return int(min(min_spp, spp, cap))
     if target_error is None:
         return int(min(spp - done, cap, done))
-    rel = state.relative_error(active)
-    need = np.median(done * ((rel / target_error) ** 2 - 1.0))
+    need = np.median(done * ((error / target_error) ** 2 - 1.0))
     return int(min(max(np.ceil(need), done // 2, 1), done, spp - done, cap))
 
 
