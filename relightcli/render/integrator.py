@@ -47,11 +47,14 @@ SUN_SPLIT_FRACTION = 0.1
 DARK_FLOOR = 0.01
 # Share of a time budget kept for assembling the result after the last round
 FINISH_SHARE = 0.05
-# Stopping decisions pool each pixel's error with its POOL_SIZE x POOL_SIZE neighbours: a
-# pixel's own estimate (RQMC_GROUPS group means: 3 degrees of freedom) is too noisy to stop
-# on, and with the control variate a pixel whose few samples missed a rare occluder reports
-# zero error. Neighbours share their occluders, so the pooled estimate sees them.
+# Sampling decisions floor each pixel's error at POOL_FLOOR x the RMS error of its
+# POOL_SIZE x POOL_SIZE neighbourhood: a pixel's own estimate (RQMC_GROUPS group means, 3
+# degrees of freedom) is noisy, and with the control variate a pixel whose few samples missed
+# a rare occluder reports zero error; neighbours share their occluders. Measured (hard sun,
+# 2% target): true / reported median error 1.9% / 0.6% without the floor, 1.35% / 1.5% with
+# it; the full RMS as the floor (1.0% / 1.4%) costs 50% more samples.
 POOL_SIZE = 5
+POOL_FLOOR = 0.5
 # Under a time budget alone, pixels whose pooled error is below this share of the median
 # stop early (unoccluded pixels are exact with the control variate): the rest get their passes
 NEGLIGIBLE_SHARE = 0.25
@@ -281,8 +284,8 @@ class _Run:
         return out.reshape(-1, dims)
 
     def stopping_error(self, state) -> np.ndarray:
-        """(n,) the error sampling decisions use: each pixel's relative error or the RMS of
-        its neighbourhood's (POOL_SIZE, masked pixels only), whichever is larger."""
+        """(n,) the error sampling decisions use: each pixel's relative error, at least
+        POOL_FLOOR x the RMS of its neighbourhood's (POOL_SIZE, masked pixels only)."""
         from scipy.ndimage import uniform_filter
 
         own = np.minimum(state.relative_error(), 1e3)  # finite: a squared inf would spread
@@ -290,7 +293,8 @@ class _Run:
         squares.flat[self.pixels], weights.flat[self.pixels] = own ** 2, 1.0
         pooled = (uniform_filter(squares, POOL_SIZE, mode="constant").flat[self.pixels]
                   / uniform_filter(weights, POOL_SIZE, mode="constant").flat[self.pixels])
-        return np.maximum(own, np.sqrt(np.maximum(pooled, 0.0)))  # the filter's round-off can dip below 0
+        pooled = np.sqrt(np.maximum(pooled, 0.0))  # the filter's round-off can dip below 0
+        return np.maximum(own, POOL_FLOOR * pooled)
 
     def values(self, first_pass, passes, rows):
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
