@@ -207,8 +207,11 @@ class _State:
     def add(self, rows, statistics, passes):
         """Add `pass_statistics` of `passes` passes of the pixels `rows`."""
         group_sums, square_sums = statistics
+        if rows.size == self.count.size:  # every pixel (rows are sorted): no gather / scatter
+            rows = slice(None)
         self.group_total[rows] += group_sums
-        self.squares[rows] += square_sums
+        if square_sums is not None:
+            self.squares[rows] += square_sums
         self.count[rows] += passes
 
     def estimates(self):

@@ -17,11 +17,12 @@ _RUN = None  # the render a forked worker inherited
 
 def pass_statistics(values, first_pass, groups):
     """Per-pixel sums of pass values (k, N, 3) for running estimates: (group_sums (N, groups,
-    3), square_sums (N, 3)); pass first_pass + j belongs to group (first_pass + j) % groups."""
+    3), square_sums (N, 3), or None with several groups: the error then comes from the group
+    means); pass first_pass + j belongs to group (first_pass + j) % groups."""
     group_sums = np.empty((values.shape[1], groups, 3))
     for group in range(groups):
         group_sums[:, group] = values[(group - first_pass) % groups::groups].sum(axis=0)
-    return group_sums, np.square(values).sum(axis=0)
+    return group_sums, (np.square(values).sum(axis=0) if groups == 1 else None)
 
 
 def _worker_start():
@@ -54,8 +55,9 @@ class ForkedPasses:
         chunks = [c for c in np.array_split(rows, self.workers) if c.size]
         results = self._pool.map(_worker_round, [(first_pass, passes, c, groups) for c in chunks])
         self.run.scene.rays_traced += sum(r[1] for r in results)
+        squares = [r[0][1] for r in results]
         return (np.concatenate([r[0][0] for r in results]),
-                np.concatenate([r[0][1] for r in results]))
+                None if squares[0] is None else np.concatenate(squares))
 
     def close(self):
         self._pool.terminate()
