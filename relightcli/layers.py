@@ -6,6 +6,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 
+# Default ray-tracing effort: stop each pixel at 4% relative standard error, at most 32
+# samples. Monte Carlo noise at that level is far below the networks' errors: on the 20 eval
+# scenes the relit image and the shading score within 0.02 dB of 2% / 64 samples (true mask:
+# relit 15.049 vs 15.056 dB, shading 17.529 vs 17.545 dB), at 1.19 instead of 1.87 s of ray
+# tracing for a 512 crop. `--target-error` / `--spp` ask for more.
+DEFAULT_TARGET_ERROR, DEFAULT_SPP_CAP = 0.04, 32
+
+
 @dataclass(frozen=True)
 class Layer:
     name: str

@@ -16,6 +16,7 @@ import numpy as np
 from relightcli import compose
 from relightcli.io.envmap import environment_view
 from relightcli.io.images import row_bands
+from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR
 
 
 @dataclass
@@ -182,10 +183,6 @@ def stage_raytrace(frame: Frame, options, models: Models) -> None:
     }
 
 
-# Default sampling effort: stop each pixel at 2% relative standard error, at most 64 samples
-# (with the control variate, 64 samples give a ~1% median error on a clean body; the cap
-# bounds the time on the noisier reconstructed meshes, whose median error the report gives)
-DEFAULT_TARGET_ERROR, DEFAULT_SPP_CAP = 0.02, 64
 
 
 def sampling_effort(options) -> tuple[int, float | None]:

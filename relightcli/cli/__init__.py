@@ -15,7 +15,7 @@ from pathlib import Path
 
 from relightcli import __version__
 from relightcli.errors import EXIT_OK, EXIT_USAGE, RelightError, UsageError
-from relightcli.layers import DEFAULT_OUTPUTS, LAYERS, METHODS
+from relightcli.layers import DEFAULT_OUTPUTS, DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, LAYERS, METHODS
 
 SUBCOMMANDS = ("shade", "info", "eval")
 
@@ -61,7 +61,8 @@ def add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
     sampling.add_argument("--target-error", type=_positive_float, metavar="E",
-                          help="stop each pixel at this relative standard error, at most 64 samples (default 0.02)")
+                          help="stop each pixel at this relative standard error, at most "
+                               f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
     parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
     parser.add_argument("--resolution", type=_positive_int, default=None, metavar="PX",
                         help="working resolution of the square person crop (default: the resolution "
@@ -133,7 +134,8 @@ def relight_parser() -> argparse.ArgumentParser:
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
     sampling.add_argument("--target-error", type=_positive_float, metavar="E",
-                          help="stop each pixel at this relative standard error, at most 64 samples (default 0.02)")
+                          help="stop each pixel at this relative standard error, at most "
+                               f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
     parser.add_argument("--workers", type=_positive_int, metavar="N",
                         help="processes for folder/many inputs (default: one per core; threads are "
                              "split so workers x threads <= cores)")
