@@ -81,26 +81,39 @@ def evaluate(family: str, models: Path, dataset, calibration: int, count: int, w
     rows = {"fp32": [], "int8": []}
     quality = {"fp32": [], "int8": []}
     times = {"fp32": [], "int8": []}
+    non_finite = {"fp32": 0, "int8": 0}
     for feed, example in feeds_and_examples(task, dataset, "val", count, input_names):
         for name, sess in (("fp32", fp32), ("int8", int8)):
             tick = time.perf_counter()
             values = sess.run(output_names, feed)
             times[name].append(time.perf_counter() - tick)
             out = {k: v[0] for k, v in zip(output_names, values)}
+            if not all(np.isfinite(v).all() for v in values):
+                non_finite[name] += 1  # a quantised net can divide by a quantised zero
+                continue
             task_metrics = task.metrics(out, example)
             rows[name].append(task_metrics)
             quality[name].append(quality_psnr(family, out, example, task_metrics))
-    result = {"samples": len(quality["fp32"]), "calibration_samples": calibration,
+    result = {"samples": len(times["fp32"]), "calibration_samples": calibration,
               "quantize_seconds": round(quantize_seconds, 1),
               "size_mb": {"fp32": round(fp32_path.stat().st_size / 2**20, 2),
                           "int8": round(int8_path.stat().st_size / 2**20, 2)}}
     for name in ("fp32", "int8"):
-        result[name] = {"quality_psnr_db": round(float(np.mean(quality[name])), 3),
+        if not quality[name]:
+            result[name] = {"non_finite_samples": non_finite[name], "quality_psnr_db": None,
+                            "median_ms": round(1e3 * float(np.median(times[name])), 1)}
+            continue
+        result[name] = {"non_finite_samples": non_finite[name],
+                        "quality_psnr_db": round(float(np.mean(quality[name])), 3),
                         "median_ms": round(1e3 * float(np.median(times[name])), 1),
                         "metrics": {k: round(float(np.mean([r[k] for r in rows[name]])), 4)
                                     for k in rows[name][0]}}
-    drop = result["fp32"]["quality_psnr_db"] - result["int8"]["quality_psnr_db"]
     faster = result["int8"]["median_ms"] < result["fp32"]["median_ms"]
+    if non_finite["int8"] or result["int8"]["quality_psnr_db"] is None:
+        result["drop_db"], result["ship_int8"] = None, False
+        result["why"] = f"int8 gives non-finite outputs on {non_finite['int8']} of {result['samples']} samples"
+        return result
+    drop = result["fp32"]["quality_psnr_db"] - result["int8"]["quality_psnr_db"]
     result["drop_db"] = round(drop, 3)
     result["ship_int8"] = bool(drop < SHIP_BELOW_DB and faster)
     result["why"] = (f"drop {drop:.2f} dB {'<' if drop < SHIP_BELOW_DB else '>='} {SHIP_BELOW_DB} dB; "
@@ -124,9 +137,9 @@ def main(argv: list[str] | None = None) -> None:
             results[family] = evaluate(family, Path(args.models), dataset, args.calibration, args.count,
                                        Path(workdir))
             r = results[family]
-            print(f"{family:12s} fp32 {r['fp32']['quality_psnr_db']:6.2f} dB {r['fp32']['median_ms']:7.1f} ms | "
-                  f"int8 {r['int8']['quality_psnr_db']:6.2f} dB {r['int8']['median_ms']:7.1f} ms | "
-                  f"drop {r['drop_db']:5.2f} dB -> {'ship' if r['ship_int8'] else 'keep fp32'}", flush=True)
+            print(f"{family:12s} fp32 {r['fp32']['quality_psnr_db']} dB {r['fp32']['median_ms']} ms | "
+                  f"int8 {r['int8']['quality_psnr_db']} dB {r['int8']['median_ms']} ms | "
+                  f"{'ship int8' if r['ship_int8'] else 'keep fp32'}: {r['why']}", flush=True)
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
         print(f"wrote {args.out}")
