@@ -149,8 +149,9 @@ def run(args):
 
 def scaling(scene, geometry, args):
     """Integrator wall time on 1 and 2 worker processes, same render; and, because a shared
-    machine makes wall-clock scaling meaningless, the scaling two idle cores would give by
-    Amdahl's law from measured CPU times: serial parent time + worker CPU time / 2."""
+    machine makes wall-clock scaling meaningless, the scaling two idle cores would give from
+    measured CPU times: the calling process samples one share and merges, the forked worker
+    samples the other, so the busier of the two sets the time."""
     import resource
 
     light = EnvironmentLight(load_hdr(HDRS["hard_sun"]))
@@ -169,9 +170,9 @@ def scaling(scene, geometry, args):
               f"{parent:.2f} s, workers {children:.2f} s")
         if workers == 1:
             single_cpu = parent
-        else:
-            ideal = parent + children / workers
-            print(f"  on 2 idle cores (Amdahl, from CPU times): {ideal:.2f} s, "
+        else:  # the calling process samples a share too: the slower process sets the time
+            ideal = max(parent, children / (workers - 1))
+            print(f"  on 2 idle cores (from CPU times, the busier process): {ideal:.2f} s, "
                   f"{single_cpu / ideal:.2f}x")
     print(f"integrator scaling 1 -> 2 workers, wall clock: {times[1] / times[2]:.2f}x")
 

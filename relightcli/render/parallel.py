@@ -1,9 +1,10 @@
 """Sample passes on several cores: forked workers that inherit the render's state.
 
 embreex holds the GIL while it traces and most of a pass is numpy on small arrays, so threads
-do not scale. Workers are forked once per render, after the BVH is built and the render's
-arrays exist, so they inherit both (copy-on-write) and nothing large is pickled: each round
-sends pixel indices and gets back per-pixel sums.
+do not scale. The calling process samples one share itself; the others go to workers forked
+once per render, after the BVH is built and the render's arrays exist, so they inherit both
+(copy-on-write) and nothing large is pickled: each round sends pixel indices and gets back
+per-pixel sums.
 """
 
 from __future__ import annotations
@@ -38,22 +39,30 @@ def _worker_round(task):
 
 
 class ForkedPasses:
-    """A pool of `workers` forked processes evaluating rounds of passes of one render."""
+    """`workers` processes evaluating rounds of passes of one render: this one and
+    `workers - 1` forked children, each taking a share of the round's pixels."""
 
     def __init__(self, run, workers: int):
         global _RUN
-        run.scene.commit()  # build the BVH in the parent: the workers inherit it
+        run.scene.commit()  # build the BVH in the parent: the children inherit it
         _RUN = run
         try:
-            self._pool = multiprocessing.get_context("fork").Pool(workers, initializer=_worker_start)
+            self._pool = multiprocessing.get_context("fork").Pool(workers - 1, initializer=_worker_start)
         finally:
             _RUN = None
         self.run, self.workers = run, workers
 
     def statistics(self, first_pass, passes, rows, groups):
-        """`pass_statistics` of `rows`, split over the workers; adds their rays to the scene."""
+        """`pass_statistics` of `rows`, split over the processes; adds their rays to the scene."""
         chunks = [c for c in np.array_split(rows, self.workers) if c.size]
-        results = self._pool.map(_worker_round, [(first_pass, passes, c, groups) for c in chunks])
+        children = self._pool.map_async(_worker_round, [(first_pass, passes, c, groups) for c in chunks[1:]])
+        # This process's share, traced here alone (a scene's own tracing pool would compete)
+        threads, self.run.scene.threads = self.run.scene.threads, 1
+        try:
+            own = pass_statistics(self.run.values(first_pass, passes, chunks[0]), first_pass, groups)
+        finally:
+            self.run.scene.threads = threads
+        results = [(own, 0)] + children.get()
         self.run.scene.rays_traced += sum(r[1] for r in results)
         squares = [r[0][1] for r in results]
         return (np.concatenate([r[0][0] for r in results]),
