@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -101,6 +102,9 @@ def _worker_init():
     # one process per core: keep BLAS / OpenMP pools from oversubscribing
     for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[name] = "1"
+    # interruptions are the parent's to handle: it stops the workers
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def generate(root, counts: dict[str, int], config: GenerationConfig, workers: int = 1,
@@ -115,10 +119,19 @@ def generate(root, counts: dict[str, int], config: GenerationConfig, workers: in
         for split, indices in tasks:
             records += _report(render_group(root, split, indices, config), on_done)
     else:
-        with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
+        pool = ProcessPoolExecutor(workers, initializer=_worker_init)
+        try:
             futures = [pool.submit(render_group, root, s, i, config) for s, i in tasks]
             for future in as_completed(futures):
                 records += _report(future.result(), on_done)
+        except KeyboardInterrupt:
+            # Stop now: queued groups are dropped, running ones die with their workers
+            # (samples are written atomically, so nothing half-written stays behind)
+            for process in list(getattr(pool, "_processes", {}).values()):
+                process.kill()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
     seconds = time.perf_counter() - start
     return {"rendered": len(records), "skipped": sum(counts.values()) - todo,
             "seconds": round(seconds, 2), "workers": workers,
@@ -182,6 +195,10 @@ def _arguments(argv):
     return parser.parse_args(argv)
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def main(argv=None) -> int:
     args = _arguments(argv)
     settings = render.RenderSettings(resolution=args.resolution, spp=args.spp,
@@ -205,13 +222,28 @@ def main(argv=None) -> int:
         rate = 60.0 * len(rendered) / (time.perf_counter() - started)
         print(f"{len(rendered)} samples ({rate:.1f}/min)", file=sys.stderr, flush=True)
 
+    # A terminated run (SIGTERM, Ctrl-C) still leaves a card that counts what is on disk
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         summary = generate(args.out, counts, config, args.workers, on_done=progress)
+        code = 0
     except RelightError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
+    except KeyboardInterrupt:
+        seconds = time.perf_counter() - started
+        summary = {"rendered": len(rendered), "interrupted": True, "seconds": round(seconds, 2),
+                   "workers": args.workers,
+                   "samples_per_minute": round(60.0 * len(rendered) / max(seconds, 1e-9), 2)}
+        code = 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     runs = runs + [dict(summary, command=command, time=time.strftime("%Y-%m-%dT%H:%M:%S"))]
     dataset.write_card(args.out, build_card(args.out, counts, config, command, runs))
+    if code:
+        print(f"interrupted after {summary['rendered']} samples; the same command resumes",
+              file=sys.stderr)
+        return code
     print(f"rendered {summary['rendered']}, skipped {summary['skipped']}, "
           f"{summary['samples_per_minute']} samples/min", file=sys.stderr)
     return 0

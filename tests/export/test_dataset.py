@@ -159,3 +159,23 @@ def test_eval_scene_folder_loads_in_relight_eval(tiny, tmp_path):
     from relightcli.evaluate import load_scene
     scene = load_scene(write_eval_scenes(tiny[0], tmp_path, "test")[0])
     assert scene.shading.shape == (RES, RES, 3) and scene.normal is not None
+
+
+def test_interrupted_run_leaves_a_card_counting_what_is_on_disk(tmp_path, makehuman_data, monkeypatch):
+    real = generate.render_group
+    calls = []
+
+    def render_then_interrupt(*args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(generate, "render_group", render_then_interrupt)
+    code = generate.main(["--out", str(tmp_path), "--count", "2", "--splits", "train=1,val=1",
+                          "--resolution", "32", "--workers", "1", "--spp", "4", "--ao-spp", "4",
+                          "--samples-per-person", "1"])
+    card = json.loads((tmp_path / dataset.CARD_NAME).read_text())
+    assert code == 130
+    assert card["counts_on_disk"] == {"train": 1, "val": 0, "test": 0}
+    assert card["runs"][-1]["interrupted"] and card["runs"][-1]["rendered"] == 1
