@@ -255,7 +255,13 @@ class _Run:
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
                            for light, strategy in plan.terms]
         self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
-        self.pixels, self.shape = pixels, geometry.mask.shape
+        # The mask's bounding box, grown by the pooling radius: where stopping_error filters
+        rows, cols = np.divmod(pixels, geometry.mask.shape[1])
+        if pixels.size:
+            r0, c0 = rows.min() - POOL_SIZE // 2, cols.min() - POOL_SIZE // 2
+            rows, cols = rows - r0, cols - c0
+        self.pool_shape = (int(rows.max(initial=0)) + POOL_SIZE, int(cols.max(initial=0)) + POOL_SIZE)
+        self.pool_index = rows * self.pool_shape[1] + cols
         # Separate streams for direct light and the bounce: adding the bounce leaves the
         # direct-light samples as they were
         self.streams = {"direct": plan.dims, "bounce": BOUNCE_DIMENSIONS if bounces == 2 else 0}
@@ -292,10 +298,10 @@ class _Run:
         from scipy.ndimage import uniform_filter
 
         own = np.minimum(state.relative_error(), 1e3)  # finite: a squared inf would spread
-        squares, weights = np.zeros(self.shape), np.zeros(self.shape)
-        squares.flat[self.pixels], weights.flat[self.pixels] = own ** 2, 1.0
-        pooled = (uniform_filter(squares, POOL_SIZE, mode="constant").flat[self.pixels]
-                  / uniform_filter(weights, POOL_SIZE, mode="constant").flat[self.pixels])
+        squares, weights = np.zeros(self.pool_shape), np.zeros(self.pool_shape)
+        squares.flat[self.pool_index], weights.flat[self.pool_index] = own ** 2, 1.0
+        pooled = (uniform_filter(squares, POOL_SIZE, mode="constant").flat[self.pool_index]
+                  / uniform_filter(weights, POOL_SIZE, mode="constant").flat[self.pool_index])
         pooled = np.sqrt(np.maximum(pooled, 0.0))  # the filter's round-off can dip below 0
         return np.maximum(own, POOL_FLOOR * pooled)
 

@@ -253,8 +253,9 @@ def _vertex_normals(vertices, faces, given):
     else:
         tri = vertices[faces]
         face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 area
-        normals = np.zeros_like(vertices)
-        for corner in range(3):
-            np.add.at(normals, faces[:, corner], face_n)
+        # Each face's normal added to its three vertices (bincount: ~2x faster than np.add.at)
+        corners = faces.ravel()
+        normals = np.stack([np.bincount(corners, weights=np.repeat(face_n[:, k], 3), minlength=len(vertices))
+                            for k in range(3)], axis=1)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)

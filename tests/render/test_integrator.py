@@ -218,7 +218,7 @@ def test_stopping_error_is_floored_by_the_neighbourhood():
     state.group_total[4] = 1.0                     # ...but the centre one, which saw none
     own = state.relative_error()
     assert own[4] == 0.0 and np.all(own[np.arange(9) != 4] > 0)
-    run = SimpleNamespace(shape=(3, 3), pixels=np.arange(9))
+    run = SimpleNamespace(pool_shape=(3, 3), pool_index=np.arange(9))
     error = _Run.stopping_error(run, state)
     assert error[4] == pytest.approx(POOL_FLOOR * np.sqrt(np.mean(own ** 2)))
     np.testing.assert_array_equal(error[[0, 8]] >= own[[0, 8]], True)
