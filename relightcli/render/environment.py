@@ -15,7 +15,6 @@ from relightcli.errors import InputError, RelightWarning
 from relightcli.io.envmap import (
     direction_to_uv,
     resample_envmap,
-    texel_directions,
     texel_solid_angles,
     uv_to_direction,
 )
