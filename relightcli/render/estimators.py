@@ -16,6 +16,7 @@ from relightcli.render.environment import EnvironmentLight
 from relightcli.render.sampling import (
     INV_PI,
     cosine_hemisphere_pdf,
+    real_array,
     sample_cosine_hemisphere,
     sample_uniform_sphere,
     uniform_sphere_pdf,
@@ -40,8 +41,7 @@ def cosine_directions(n, u):
     `sample_cosine_hemisphere` in the tangent frame (t, s, n) of Duff et al. 2017 (pbrt's
     CoordinateSystem, branchless), written out per component: no (N, 3, 3) frames.
     """
-    n = np.asarray(n)
-    n = n if n.dtype == np.float32 else n.astype(np.float64, copy=False)
+    n = real_array(n)
     local = sample_cosine_hemisphere(np.asarray(u, dtype=n.dtype))
     x, y, z = local[:, 0], local[:, 1], local[:, 2]
     nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
@@ -123,7 +123,7 @@ def _direct(scene, light, points, n, g, u, strategy, max_distance, complement):
 
 def _unoccluded_contribution(scene, points, g, directions, cosine, pdf, radiance,
                              max_distance, complement=False):
-    """f(w) V(w) / pdf per row, f = L max(0, cos) / pi: (N, 3) float64; zero where f or
+    """f(w) V(w) / pdf per row, f = L max(0, cos) / pi: (N, 3) float32; zero where f or
     the pdf is zero, and no ray is traced there. complement: -f(w) (1 - V(w)) / pdf."""
     # float64, as the pdfs: a cosine-sampled weight is then exactly 1 (cos / pi over cos / pi)
     cosine = np.maximum(cosine, 0.0).astype(np.float64)

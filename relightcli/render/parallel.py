@@ -51,17 +51,14 @@ class ForkedPasses:
         finally:
             _RUN = None
         self.run, self.workers = run, workers
+        # This process samples a share too, tracing alone (a scene's own pool would compete)
+        self._threads, run.scene.threads = run.scene.threads, 1
 
     def statistics(self, first_pass, passes, rows, groups):
         """`pass_statistics` of `rows`, split over the processes; adds their rays to the scene."""
         chunks = [c for c in np.array_split(rows, self.workers) if c.size]
         children = self._pool.map_async(_worker_round, [(first_pass, passes, c, groups) for c in chunks[1:]])
-        # This process's share, traced here alone (a scene's own tracing pool would compete)
-        threads, self.run.scene.threads = self.run.scene.threads, 1
-        try:
-            own = pass_statistics(self.run.values(first_pass, passes, chunks[0]), first_pass, groups)
-        finally:
-            self.run.scene.threads = threads
+        own = pass_statistics(self.run.values(first_pass, passes, chunks[0]), first_pass, groups)
         results = [(own, 0)] + children.get()
         self.run.scene.rays_traced += sum(r[1] for r in results)
         squares = [r[0][1] for r in results]
@@ -71,6 +68,7 @@ class ForkedPasses:
     def close(self):
         self._pool.terminate()
         self._pool.join()
+        self.run.scene.threads = self._threads
 
     def __enter__(self):
         return self

@@ -15,6 +15,13 @@ INV_PI = 1.0 / np.pi
 INV_4PI = 1.0 / (4.0 * np.pi)
 
 
+def real_array(x) -> np.ndarray:
+    """x as an array that stays float32 when it is float32 (the renderer's hot path), else
+    float64."""
+    x = np.asarray(x)
+    return x if x.dtype == np.float32 else x.astype(np.float64, copy=False)
+
+
 # ---------------------------------------------------------------- cosine hemisphere
 def sample_cosine_hemisphere(u):
     """Cosine-weighted direction about +z. u: (..., 2). Returns (..., 3) unit vectors, float32
@@ -23,8 +30,7 @@ def sample_cosine_hemisphere(u):
     Polar (Malley) mapping: a point uniform on the unit disc, r = sqrt(u0), phi = 2 pi u1,
     projected up to the hemisphere; pdf = cos(theta) / pi.
     """
-    u = np.asarray(u)
-    u = u if u.dtype == np.float32 else u.astype(np.float64, copy=False)
+    u = real_array(u)
     r = np.sqrt(u[..., 0])
     phi = 2.0 * np.pi * u[..., 1]
     z = np.sqrt(np.maximum(0.0, 1.0 - u[..., 0]))
