@@ -28,15 +28,17 @@ STAGE_NEEDS = {
     "ao": ("crop",),  # ambient occlusion net
     "delight": ("geometry",),  # albedo + input-light estimate
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
-    "face": ("reconstruct",),  # face detection, morphable-model fit, face shading
+    "face": ("geometry",),  # face detection, landmarks, morphable-model fit
     "raytrace": ("reconstruct",),  # coarse body shading under the target environment
     "sh_shading": ("geometry",),  # SH-9/25 irradiance from predicted normals (baselines)
-    "refine": ("raytrace", "ao", "face"),  # body refinement net, then face refinement
+    "refine": ("raytrace", "ao"),  # body refinement net
+    "face_refine": ("refine", "face"),  # coarse face shading, face refinement net, composite
     "compose": ("crop",),  # relit = albedo * shading, pasted back
 }
 
 # Which stage produces the shading for each method.
-SHADING_STAGE = {"raytrace": "refine", "raytrace-norefine": "raytrace", "sh9": "sh_shading", "sh25": "sh_shading"}
+SHADING_STAGE = {"raytrace": "face_refine", "raytrace-norefine": "raytrace", "sh9": "sh_shading",
+                 "sh25": "sh_shading"}
 
 
 def output_needs(output: str, method: str) -> tuple[str, ...]:
@@ -98,10 +100,11 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
         skipped["refine"] = "--method raytrace-norefine"
     if "mask" in needed and has_alpha:
         skipped["mask_net"] = "the input brings an alpha channel or --mask"
-    if "face" in run and not _face_refinement_ships():
-        run.remove("face")
-        skipped["face"] = ("no face refinement model ships yet (models/manifest.json has no "
-                           "face_refine): a face fit would feed nothing")
+    if "face_refine" in run and not _face_refinement_ships():
+        for stage in ("face", "face_refine"):
+            run.remove(stage)
+            skipped[stage] = ("models/manifest.json has no face_refine model: the body "
+                              "refinement's shading is used over the face too")
     return Plan(run, skipped)
 
 

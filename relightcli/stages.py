@@ -38,7 +38,8 @@ class Frame:
     coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
     shading: np.ndarray | None = None  # (R, R, 3) final shading under env
     relit_crop: np.ndarray | None = None  # (R, R, 3) albedo * shading, linear
-    face_fit: object | None = None  # relightcli.geometry.face.FaceFit, when the face stage ran
+    face_fit: object | None = None  # relightcli.geometry.face.FaceFit, when the face stage found a face
+    face_crop: object | None = None  # its relightcli.geometry.face.CropRect in the working crop
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
 
     @property
@@ -208,14 +209,37 @@ def fill_uncovered(shading: np.ndarray, covered: np.ndarray, wanted: np.ndarray)
 
 def stage_face(frame: Frame, options, models: Models) -> None:
     """Detect the face, regress its landmarks, fit the ICT model (relightcli.geometry.face).
-    Planned only once a face refinement net ships to consume the fit (pipeline.plan_stages);
-    its coarse face shading, `render_face_shading`, then belongs to the lighting stages."""
-    from relightcli.geometry.face import fit_face_in_crop
+    Planned only when a face refinement net ships to consume the fit (pipeline.plan_stages)."""
+    from relightcli.geometry.face import CropRect, fit_face_in_crop
 
     depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
     fit, info = fit_face_in_crop(frame.crop, frame.crop_mask, models.get("landmarks"), depth=depth)
     frame.notes["face"] = info
     frame.face_fit = fit
+    frame.face_crop = CropRect(*info["crop"]) if fit is not None else None
+
+
+def stage_face_refine(frame: Frame, options, models: Models) -> None:
+    """The paper's face path: the fitted head ray-traced under the target environment in the
+    128x128 face crop, the face net on [that crop of the refined body shading, the coarse face
+    shading], and the result blended into the body's shading over the face (the face pixels
+    of the fitted model, feathered: geometry.face.face_blend_weight). Nothing changes when the
+    face stage found no face."""
+    from relightcli.geometry.face import cut_crop, face_blend_weight, paste_crop, render_face_shading
+    from relightcli.nets.refine import shading_scale
+
+    if frame.face_fit is None:
+        frame.notes["face_refine"] = {"skipped": frame.notes.get("face", {}).get("skipped", "no face fit")}
+        return
+    spp, target = sampling_effort(options)
+    coarse, face_pixels = render_face_shading(frame.face_fit, models.light(frame.env), spp=spp,
+                                              target_error=target, seed=options.seed, threads=1)
+    scale = shading_scale(frame.shading, frame.crop_mask)
+    refined = models.get("face_refine").predict(cut_crop(frame.shading, frame.face_crop), coarse, scale)
+    weight = face_blend_weight(face_pixels)
+    shading = paste_crop(frame.shading, np.maximum(refined, 0.0), weight, frame.face_crop)
+    frame.shading = shading * frame.crop_mask[..., None]
+    frame.notes["face_refine"] = {"face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
 
 
 def stage_refine(frame: Frame, options, models: Models) -> None:
@@ -240,12 +264,13 @@ STAGES = {
     "raytrace": stage_raytrace,
     "sh_shading": stage_sh_shading,
     "refine": stage_refine,
+    "face_refine": stage_face_refine,
     "compose": stage_compose,
 }
 
 
 # Stages whose result depends on the lighting: a turntable runs only these once per frame.
-LIGHTING_STAGES = ("raytrace", "sh_shading", "refine", "compose")
+LIGHTING_STAGES = ("raytrace", "sh_shading", "refine", "face_refine", "compose")
 
 
 # --- turning a frame into output layers ---------------------------------------------------

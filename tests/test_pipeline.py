@@ -27,11 +27,23 @@ def test_mask_net_is_not_skipped_without_alpha():
     assert "mask_net" not in plan(["mask"], has_alpha=False).skipped
 
 
-def test_full_paper_method_runs_every_stage_but_sh():
+def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
     p = plan(["relit"])
-    assert p.run == ["mask", "crop", "geometry", "ao", "delight", "reconstruct", "raytrace", "refine", "compose"]
-    assert "face refinement" in p.skipped["face"]  # nothing consumes a face fit yet
+    assert p.run == ["mask", "crop", "geometry", "ao", "delight", "reconstruct", "face", "raytrace", "refine",
+                     "face_refine", "compose"]
     assert "sh_shading" in p.skipped
+
+
+def test_no_face_refinement_model_plans_no_face_fit(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: False)
+    p = plan(["relit"])
+    assert "face" not in p.run and "face_refine" not in p.run and "refine" in p.run
+    assert "face_refine" in p.skipped["face"] and "face_refine" in p.skipped["face_refine"]
 
 
 @pytest.mark.parametrize("method", ["sh9", "sh25"])
@@ -41,7 +53,10 @@ def test_sh_methods_skip_ray_tracing_and_refinement(method):
     assert "spherical harmonics" in p.skipped["raytrace"]
 
 
-def test_norefine_skips_refinement_and_face():
+def test_norefine_skips_refinement_and_face(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
     p = plan(["relit"], method="raytrace-norefine")
     assert "refine" not in p.run and "face" not in p.run and "ao" not in p.run
     assert p.skipped["refine"] == "--method raytrace-norefine"

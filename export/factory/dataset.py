@@ -9,16 +9,22 @@ it; names not listed are stored and returned as float32):
     srgb8   uint8, the 8-bit sRGB photo exactly as quantised; loaded as linear [0, 1]
             (relightcli.io.images.srgb_to_linear): "input", "input_clean"
     unit8   uint8 round(255 x), x in [0, 1]: "mask", "coverage" (beyond the contract: the
-            share of each pixel the person covers, with which the photo was composited)
-    unit16  uint16 round(65535 x), x in [0, 1]: "albedo", "ao"
+            share of each pixel the person covers, with which the photo was composited),
+            "face_pixels" (export/factory/face_closeups.py)
+    unit16  uint16 round(65535 x), x in [0, 1]: "albedo", "ao", "ao_pred"
     normal  float16 unit vectors, renormalised on load (zero rows stay zero): "normal",
             "back_normal"
     hdr16   float16 of x / s with s = max |x| kept as "<name>__scale" (float64), so relative
-            precision ~5e-4 down to 6e-5 s: "shading_a", "shading_b", "image_a", "relit_b"
+            precision ~5e-4 down to 6e-5 s: "shading_a", "shading_b", "image_a", "relit_b",
+            "coarse_shading_b", "coarse_face_b", "body_shading_b"
     float32 as is: depths, "rect", "face_box", "exposure", "light_a", "light_b"
 plus "__meta__" (a JSON string: the sample's settings, integrator statistics) and
 "__format__" (FORMAT_VERSION). Files are written to a temporary name and renamed into place,
 so a sample file is complete or absent (this is what makes generation resumable).
+
+`add_arrays` adds arrays to a written sample (export/factory/coarse.py adds what the runtime's
+own stages make of the sample: "coarse_shading_b", "ao_pred"); the stored bytes of the others
+are kept as they are.
 """
 
 from __future__ import annotations
@@ -41,7 +47,8 @@ ENCODINGS = {
     "ao": "unit16", "normal": "normal", "back_normal": "normal", "shading_a": "hdr16",
     "shading_b": "hdr16", "image_a": "hdr16", "relit_b": "hdr16", "front_depth": "float32",
     "back_depth": "float32", "rect": "float32", "face_box": "float32", "exposure": "float32",
-    "light_a": "float32", "light_b": "float32",
+    "light_a": "float32", "light_b": "float32", "coarse_shading_b": "hdr16", "ao_pred": "unit16",
+    "coarse_face_b": "hdr16", "body_shading_b": "hdr16", "face_pixels": "unit8",
 }
 # What open_dataset(...).load returns: name -> (shape with H, W symbolic, dtype)
 CONTRACT = {
@@ -123,6 +130,24 @@ def write_sample(root, split: str, sample_id: str, arrays: dict, meta: dict) -> 
               "__meta__": np.array(json.dumps(meta, sort_keys=True))}
     for name, value in arrays.items():
         if name.startswith("__") or "__" in name:
+            raise UsageError(f"array name {name!r} is reserved (contains '__')")
+        stored.update(_encode(name, value))
+    _atomic_write(path, lambda handle: np.savez_compressed(handle, **stored))
+    return path
+
+
+def add_arrays(root, split: str, sample_id: str, arrays: dict, meta_update: dict) -> Path:
+    """Add (or replace) arrays of a written sample and merge `meta_update` into its metadata;
+    atomic like write_sample. The other arrays' stored bytes are copied, not re-encoded."""
+    path = sample_path(root, split, sample_id)
+    if not path.is_file():
+        raise InputError("sample not found", path=path, fix="list samples with open_dataset(root).ids(split)")
+    with np.load(path, allow_pickle=False) as old:
+        stored = {name: old[name] for name in old.files}
+    meta = dict(json.loads(str(stored["__meta__"])), **meta_update)
+    stored["__meta__"] = np.array(json.dumps(meta, sort_keys=True))
+    for name, value in arrays.items():
+        if "__" in name:
             raise UsageError(f"array name {name!r} is reserved (contains '__')")
         stored.update(_encode(name, value))
     _atomic_write(path, lambda handle: np.savez_compressed(handle, **stored))

@@ -182,11 +182,12 @@ def _stats(result) -> dict:
             "seconds": round(result.seconds, 3), "strategy": result.strategy}
 
 
-def render_geometry(person, spec: SceneSpec, resolution: int):
-    """Scene, pixel geometry and the geometric maps of a person in the sample's camera.
+def render_geometry(person, spec: SceneSpec, resolution: int, rect=None):
+    """Scene, pixel geometry and the geometric maps of a person in the sample's camera; rect:
+    the world square (x0, x1, y0, y1) seen, by default the sample's framing of the person.
     Returns (scene, geometry, maps dict, camera-frame vertices)."""
     vertices = camera_vertices(person.vertices, spec.pitch_deg, spec.yaw_deg)
-    rect = frame_rect(vertices[:, :2], spec.scale)
+    rect = frame_rect(vertices[:, :2], spec.scale) if rect is None else tuple(float(v) for v in rect)
     scene = Scene(vertices, person.faces)
     geometry = render_pixel_geometry(scene, rect, (resolution, resolution))
     hits, _, points = trace_pixels(scene, rect, resolution)

@@ -70,6 +70,18 @@ class SceneSpec:
         return out
 
 
+def spec_from_dict(values: dict) -> SceneSpec:
+    """The SceneSpec of `SceneSpec.as_dict()` (e.g. a stored sample's meta["spec"])."""
+    fields = {k: v for k, v in values.items() if k != "sample_id"}
+    for key in ("lighting_a", "lighting_b", "background"):
+        fields[key] = lighting.LightingSpec(**fields[key])
+    augmentation = dict(fields.get("augmentation", {}))
+    if "gains" in augmentation:
+        augmentation["gains"] = tuple(augmentation["gains"])
+    fields["augmentation"] = camera_model.Augmentation(**augmentation)
+    return SceneSpec(**fields)
+
+
 def sample_id(index: int) -> str:
     """File stem of sample `index`: zero-padded to 6 digits."""
     return f"{int(index):06d}"

@@ -63,6 +63,7 @@ class TrainConfig:
     val_max_samples: int = 32
     coarse_shading: str = "standin"   # "standin" (degraded shading_b) or a dataset key
     shading_key: str = "shading_b"    # the target shading of the refinement nets
+    ao_key: str = "ao"                # the body refinement's AO input: "ao" (truth) or "ao_pred" (the AO net's)
     face_crop_size: int = 128         # the face net trains on crops resampled to this size
     face_margin: float = 1.2          # square face crop side = margin * max(face box side)
     export_size: int = 256            # trace size for the ONNX export (axes stay dynamic)

@@ -188,7 +188,7 @@ def coarse_body_shading(config: TrainConfig, sample: dict, rng: np.random.Genera
                                            rng, config.standin)
     if config.coarse_shading not in sample:
         raise ConfigError(f"config coarse_shading={config.coarse_shading!r} but the dataset samples have no "
-                       f"such array; use \"standin\" or regenerate the data with it")
+                          "such array; use \"standin\" or add it with python -m export.factory.coarse")
     return sample[config.coarse_shading]
 
 
@@ -219,7 +219,10 @@ class BodyRefineTask(GANTask):
     def example(self, sample, rng):
         coarse = coarse_body_shading(self.config, sample, rng)
         scale = np.float32(shading_scale(coarse, sample["mask"]))
-        return {"coarse_shading": chw(coarse / scale), "ao": chw(sample["ao"]),
+        if self.config.ao_key not in sample:
+            raise ConfigError(f"config ao_key={self.config.ao_key!r} but the dataset samples have no such "
+                              "array; use \"ao\" or add it with python -m export.factory.coarse")
+        return {"coarse_shading": chw(coarse / scale), "ao": chw(sample[self.config.ao_key]),
                 "shading": chw(sample[self.config.shading_key] / scale), "mask": chw(sample["mask"])}
 
     def losses(self, out, batch):
@@ -261,6 +264,8 @@ class FaceRefineTask(GANTask):
         return LSGANDiscriminator(3 + 3, LSGANConfig(widths=widths, input_size=size))
 
     def example(self, sample, rng):
+        if self.config.coarse_shading != "standin":
+            return self._closeup_example(sample)
         if not data.has_face(sample):
             return None
         shading = sample[self.config.shading_key]
@@ -276,6 +281,22 @@ class FaceRefineTask(GANTask):
         return {"body_shading": crop(body / scale), "face_shading": crop(face / scale),
                 "shading": crop(shading / scale), "mask": crop(sample["mask"])}
 
+    def _closeup_example(self, sample):
+        """A close-up of export/factory/face_closeups.py: already the 128 face crop, with the
+        runtime's coarse face shading (config `coarse_shading`, e.g. "coarse_face_b") and the
+        body shading at the person crop's resolution. The loss and metrics cover the fitted
+        face's pixels, where the runtime blends the net's answer in."""
+        key = self.config.coarse_shading
+        if key not in sample or "body_shading_b" not in sample:
+            raise ConfigError(f"config coarse_shading={key!r} needs face close-ups with {key!r} and "
+                              "'body_shading_b': python -m export.factory.face_closeups")
+        shading, mask = sample[self.config.shading_key], sample["mask"] * sample["face_pixels"]
+        if shading.shape[0] != self.config.face_crop_size or not mask.any():
+            return None
+        scale = np.float32(shading_scale(shading, sample["mask"]))
+        return {"body_shading": chw(sample["body_shading_b"] / scale), "face_shading": chw(sample[key] / scale),
+                "shading": chw(shading / scale), "mask": chw(mask)}
+
     def losses(self, out, batch):
         return {"shading_l1": self.w["l1"] * masked_l1(out["shading"], batch["shading"], batch["mask"])}
 
@@ -289,8 +310,11 @@ class FaceRefineTask(GANTask):
         t = protocol_encode(true, scale)
         r = protocol_encode(hwc(out["shading"]), scale)
         c = protocol_encode(hwc(example["face_shading"]), scale)
-        psnr_r, psnr_c = metrics.psnr(r, t, mask), metrics.psnr(c, t, mask)
-        return {"face_psnr_refined": psnr_r, "face_psnr_coarse": psnr_c, "face_psnr_gain": psnr_r - psnr_c}
+        b = protocol_encode(hwc(example["body_shading"]), scale)
+        psnr_r, psnr_c, psnr_b = (metrics.psnr(x, t, mask) for x in (r, c, b))
+        # the gain that matters at run time is over the body shading the face would keep
+        return {"face_psnr_refined": psnr_r, "face_psnr_coarse": psnr_c, "face_psnr_gain": psnr_r - psnr_c,
+                "face_psnr_body": psnr_b, "face_psnr_gain_over_body": psnr_r - psnr_b}
 
 
 def interocular(landmarks):

@@ -53,6 +53,9 @@ MIN_FACE_SHARE = 0.2
 # p90 7.1 / 6.9 / 6.7 / 6.6 (the net's mean landmark error there is 1.4 px); 2 is near the
 # net's error and keeps the fit residual meaningful
 LANDMARK_SIGMA_PX = 2.0
+# The refined face fades into the body's shading with this Gaussian sigma (pixels of the 128
+# face crop), inside the fitted face's outline (face_blend_weight)
+FACE_FEATHER_PX = 2.0
 PERSON_CROP_RECT = (-1.0, 1.0, -1.0, 1.0)  # the working crop's world square (compose.py)
 
 
@@ -69,6 +72,44 @@ def cut_crop(image, crop: CropRect) -> np.ndarray:
     interpolation = cv2.INTER_AREA if crop.size >= crop.resolution else cv2.INTER_LINEAR
     out = cv2.resize(region, (crop.resolution, crop.resolution), interpolation=interpolation)
     return out.reshape((crop.resolution, crop.resolution) + image.shape[2:])
+
+
+def paste_crop(image, patch, weight, crop: CropRect) -> np.ndarray:
+    """The inverse of `cut_crop` with blending: a copy of the (H, W[, C]) image whose square
+    `crop` window holds weight * patch + (1 - weight) * image, with the (R, R[, C]) patch and
+    the (R, R) weight in [0, 1] resampled to the window (area-averaged when shrinking,
+    bilinear when enlarging); the parts of the window outside the image are dropped."""
+    out = np.array(image, np.float32, copy=True)
+    height, width = out.shape[:2]
+    top, left = max(crop.top, 0), max(crop.left, 0)
+    bottom, right = min(crop.top + crop.size, height), min(crop.left + crop.size, width)
+    if bottom <= top or right <= left:
+        return out
+    interpolation = cv2.INTER_AREA if crop.size <= crop.resolution else cv2.INTER_LINEAR
+    size = (crop.size, crop.size)
+    patch = cv2.resize(np.asarray(patch, np.float32), size, interpolation=interpolation)
+    weight = np.clip(cv2.resize(np.asarray(weight, np.float32), size, interpolation=interpolation), 0.0, 1.0)
+    patch = patch.reshape(size + out.shape[2:])[top - crop.top:bottom - crop.top, left - crop.left:right - crop.left]
+    weight = weight[top - crop.top:bottom - crop.top, left - crop.left:right - crop.left]
+    if out.ndim == 3:
+        weight = weight[..., None]
+    window = out[top:bottom, left:right]
+    out[top:bottom, left:right] = weight * patch + (1.0 - weight) * window
+    return out
+
+
+def face_blend_weight(face_pixels, feather_px: float = FACE_FEATHER_PX) -> np.ndarray:
+    """(S, S) float32 weight in [0, 1] of the refined face over the body shading: the face
+    pixels of the fitted model, eroded by 2.5 x `feather_px` and blurred with that sigma, so
+    the face fades into the body's shading inside the face (weight < 0.01 outside it) instead
+    of at its edge, where a misfit head's outline would show as a seam."""
+    inside = np.asarray(face_pixels, bool)
+    if feather_px <= 0:
+        return inside.astype(np.float32)
+    radius = int(np.ceil(2.5 * feather_px))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2)
+    eroded = cv2.erode(inside.astype(np.uint8), kernel, borderValue=0).astype(np.float32)
+    return np.clip(cv2.GaussianBlur(eroded, (0, 0), feather_px), 0.0, 1.0)
 
 
 def crop_to_image(points, crop: CropRect) -> np.ndarray:
@@ -136,15 +177,16 @@ def fit_face_in_crop(image_crop, mask_crop, landmark_net, *, model: FaceModel | 
     info.update(landmarks=int(landmarks.shape[0]), inliers=int(fit.inliers.sum()),
                 residual_px=round(fit.residual_px, 2),
                 angles_deg=[round(yaw, 1), round(pitch, 1), round(roll, 1)])
-    problem = _implausible(fit, landmarks, yaw, pitch, max_residual_px)
+    problem = implausible_fit(fit, landmarks, max_residual_px)
     if problem:
         info["skipped"] = f"{problem}: face stage skipped"
         return None, info
     return fit, info
 
 
-def _implausible(fit: FaceFit, landmarks, yaw: float, pitch: float, max_residual_px: float) -> str:
-    """Why a fit is not trusted ("" when it is)."""
+def implausible_fit(fit: FaceFit, landmarks, max_residual_px: float = MAX_RESIDUAL_PX) -> str:
+    """Why a fit of the (68, 2) landmarks is not trusted ("" when it is)."""
+    yaw, pitch, _ = rotation_angles_deg(fit.rotation)
     if not fit.residual_px <= max_residual_px:
         return (f"face model fit residual {fit.residual_px:.1f} px > {max_residual_px} px "
                 "(landmarks the face model does not explain)")
@@ -194,6 +236,7 @@ def _face_pixels(scene, fit: FaceFit, size: int) -> np.ndarray:
 
 
 __all__ = ["CropRect", "FaceBox", "FaceFit", "FaceModel", "canonical_crop", "crop_to_image",
-           "cut_crop", "detect_face", "face_crop_rect", "face_landmarks", "face_mesh", "fit_face",
-           "fit_face_in_crop", "image_to_crop", "pixel_to_world", "render_face_shading",
-           "rotation_angles_deg", "rotation_matrix", "transform", "world_to_pixel"]
+           "cut_crop", "detect_face", "face_blend_weight", "face_crop_rect", "face_landmarks",
+           "face_mesh", "fit_face", "fit_face_in_crop", "image_to_crop", "implausible_fit", "paste_crop",
+           "pixel_to_world", "render_face_shading", "rotation_angles_deg", "rotation_matrix",
+           "transform", "world_to_pixel"]

@@ -1,0 +1,120 @@
+"""Add to each dataset sample what the runtime's own stages make of it, so the refinement net
+trains on the shading it will refine: `python -m export.factory.coarse DATA [--splits ...]`.
+
+Per sample, with the shipped nets (relightcli.stages, the true person mask, the whole sample
+as the working crop): geometry net -> reconstruction + smoothing -> ray-traced coarse shading
+under lighting B at the runtime's default sampling effort ("coarse_shading_b", the same units
+and exposure as "shading_b"), and the AO net's map ("ao_pred"). The models' sha256 go into the
+sample's metadata ("coarse"); a sample whose record matches the current models is skipped, so
+the command resumes, and re-running after new nets ship redoes everything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+
+import numpy as np
+
+from relightcli.errors import RelightError
+
+from . import dataset
+from .eval_scenes import target_environment
+
+MODELS_USED = ("geometry", "ao")
+
+
+def models_record() -> dict:
+    """{"geometry": sha256, "ao": sha256} of the models the runtime would load now."""
+    from relightcli.nets.manifest import load_manifest
+
+    manifest = load_manifest()
+    return {name: manifest[name].sha256 for name in MODELS_USED}
+
+
+def coarse_arrays(sample: dict, meta: dict, models, *, seed: int = 0) -> tuple[dict, dict]:
+    """({"coarse_shading_b", "ao_pred"}, statistics) of one loaded sample."""
+    from relightcli import compose
+    from relightcli.pipeline import RelightOptions
+    from relightcli.stages import Frame, stage_ao, stage_geometry, stage_raytrace, stage_reconstruct
+
+    size = sample["input"].shape[0]
+    options = RelightOptions(resolution=size, seed=seed, threads=1)
+    env = target_environment(meta, meta.get("settings", {}).get("hdri_folder"))
+    frame = Frame(image=sample["input"], mask=sample["mask"], env=env)
+    frame.box = compose.CropBox(0, 0, size, size)
+    frame.crop, frame.crop_mask = sample["input"], np.clip(sample["mask"], 0.0, 1.0)
+    for stage in (stage_geometry, stage_ao, stage_reconstruct, stage_raytrace):
+        stage(frame, options, models)
+    frame.scene.close()
+    return ({"coarse_shading_b": frame.coarse_shading, "ao_pred": frame.ao},
+            {key: frame.notes["raytrace"][key] for key in ("spp_mean", "rel_error", "seconds")})
+
+
+_MODELS = None
+
+
+def _worker_init():
+    global _MODELS
+    from relightcli.stages import Models
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _MODELS = Models(threads=1)
+
+
+def _one(root: str, split: str, sample_id: str, record: dict) -> str:
+    data = dataset.open_dataset(root)
+    arrays, stats = coarse_arrays(data.load(split, sample_id), data.meta(split, sample_id), _MODELS)
+    dataset.add_arrays(root, split, sample_id, arrays, {"coarse": dict(record, **stats)})
+    return sample_id
+
+
+def pending(root, splits, record: dict) -> list[tuple[str, str]]:
+    """(split, id) of the samples without coarse arrays from the current models."""
+    data = dataset.open_dataset(root)
+    todo = []
+    for split in splits:
+        for sample_id in data.ids(split):
+            done = data.meta(split, sample_id).get("coarse", {})
+            if any(done.get(name) != sha for name, sha in record.items()):
+                todo.append((split, sample_id))
+    return todo
+
+
+def run(root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None) -> int:
+    """Add the coarse arrays to every pending sample; returns how many were written."""
+    record = models_record()
+    todo = pending(root, splits, record)[:limit]
+    print(f"{len(todo)} samples to do", file=sys.stderr)
+    start, done = time.perf_counter(), 0
+    with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
+        futures = [pool.submit(_one, str(root), split, sample_id, record) for split, sample_id in todo]
+        for future in as_completed(futures):
+            future.result()
+            done += 1
+            if done % 50 == 0 or done == len(todo):
+                rate = done / (time.perf_counter() - start) * 60
+                print(f"{done}/{len(todo)} samples ({rate:.1f}/min)", file=sys.stderr, flush=True)
+    return done
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m export.factory.coarse", description=__doc__.splitlines()[0])
+    parser.add_argument("data", help="dataset folder written by export.factory.generate")
+    parser.add_argument("--splits", default=",".join(dataset.SPLITS), help="comma-separated (default: all)")
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--limit", type=int, default=None, help="at most this many samples (a trial)")
+    args = parser.parse_args(argv)
+    try:
+        run(args.data, [s for s in args.splits.split(",") if s], args.workers, args.limit)
+    except RelightError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return error.exit_code
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
