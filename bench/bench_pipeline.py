@@ -102,9 +102,9 @@ def main() -> None:
     parser.add_argument("--target-error", type=float, default=None)
     parser.add_argument("--memory", action="store_true", help="also measure peak memory on a 24 MP photo")
     args = parser.parse_args()
-    from relightcli.nets.manifest import working_resolution
+    from relightcli.layers import DEFAULT_RESOLUTION
 
-    resolution = args.resolution or working_resolution()
+    resolution = args.resolution or DEFAULT_RESOLUTION
     result = {"resolution": resolution, "threads": args.threads, "cpu": os.cpu_count(),
               "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error)}
     if args.memory:

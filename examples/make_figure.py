@@ -18,7 +18,6 @@ from relightcli import compose  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image, write_image  # noqa: E402
-from relightcli.nets.manifest import working_resolution  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
 from relightcli.stages import Models  # noqa: E402
 
@@ -29,7 +28,7 @@ ENVIRONMENTS = ("noon_grass.hdr", "kloofendal_overcast.hdr")
 def main() -> None:
     image = read_image(EXAMPLES / "skier.jpg").rgb
     mask = read_image(EXAMPLES / "skier_mask.png", srgb=False).rgb[..., 0]
-    options = RelightOptions(outputs=("relit",), resolution=working_resolution(), threads=2)
+    options = RelightOptions(outputs=("relit",), threads=2)
     models = Models(options.threads)
     tiles = []
     for name in ENVIRONMENTS:

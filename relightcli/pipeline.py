@@ -16,6 +16,7 @@ import numpy as np
 
 from relightcli.batch import Item, ItemReport
 from relightcli.errors import InputError
+from relightcli.layers import DEFAULT_RESOLUTION
 
 # A person needs some pixels: below this side length nothing meaningful can be estimated.
 MIN_SIDE = 32
@@ -70,7 +71,7 @@ class RelightOptions:
     threads: int = 1
     background: str = "keep"
     max_pixels: int = 100_000_000
-    resolution: int = 512
+    resolution: int = DEFAULT_RESOLUTION
     turntable: int = 0  # frames with the environment turned 360/N apart; 0: one image
 
 

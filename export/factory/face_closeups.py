@@ -12,8 +12,11 @@ runs on that close-up as it would on the person crop:
     run time) -> the fitted head ray-traced under B ("coarse_face_b", the runtime's effort).
 
 Each OUT sample (export/factory/dataset.py format, 128x128) holds "shading_b" (the truth, the
-refinement target), "coarse_face_b", "body_shading_b" (the truth seen at the person crop's
-resolution: what the body refinement at best gives the face net), "face_pixels" (the fitted
+refinement target), "coarse_face_b", "body_shading_b" (the body shading the face net gets:
+with `--body-input coarse`, the default, the source sample's runtime coarse shading from
+export.factory.coarse, resampled to the square — samples without it wait for it; with
+`--body-input truth`, the truth seen at the person crop's resolution, far better than any run
+time gives), "face_pixels" (the fitted
 face's pixels, where the runtime blends), "mask", "albedo", "input" (the close-up photo),
 "rect", "exposure"; the metadata keeps the source sample, the fit and the integrator's
 statistics. Deterministic from the source samples; resumable; parallel over processes.
@@ -133,7 +136,7 @@ def _worker_init():
     _STATE.update(net=LandmarkNet(threads=1), model=FaceModel.load())
 
 
-def render_person(data_root: str, out_root: str, split: str, ids: list[str]) -> list[str]:
+def render_person(data_root: str, out_root: str, split: str, ids: list[str], body_input: str = "coarse") -> list[str]:
     """Close-ups of the samples `ids` (one person); returns the ids written."""
     from .person import build_person
 
@@ -147,12 +150,14 @@ def render_person(data_root: str, out_root: str, split: str, ids: list[str]) -> 
         resolution = meta["settings"]["resolution"]
         square = closeup_rect(box, rect, resolution, margin)
         rng = np.random.default_rng([spec.index, dataset.SPLITS.index(split), 11])
-        body = body_view(data.load(split, sample_id), box, margin)
+        body = body_view(data.load(split, sample_id), box, margin) if body_input == "coarse" else None
+        if body_input == "coarse" and body is None:
+            continue  # its coarse shading is not there yet: a later run does it
         result = closeup_sample(person, spec, meta, square, _STATE["net"], _STATE["model"], rng, body)
         if result is None:
             continue
         arrays, record = result
-        record["body_input"] = "coarse_shading_b" if body is not None else "truth at the runtime resolution"
+        record["body_input"] = body_input
         dataset.write_sample(out_root, split, sample_id, arrays, record)
         written.append(sample_id)
     return written
@@ -175,8 +180,10 @@ def pending_groups(data_root, out_root, splits) -> list[tuple[str, list[str]]]:
     return groups
 
 
-def run(data_root, out_root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None) -> dict:
+def run(data_root, out_root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None,
+        body_input: str = "coarse") -> dict:
     card = {"name": "relightcli face refinement close-ups", "source": str(data_root), "size": SIZE,
+            "body_input": body_input,
             "runtime_side_px": list(RUNTIME_SIDE_PX), "face_effort": [FACE_SPP, FACE_TARGET_ERROR],
             "truth_effort": [TRUTH_SPP, TRUTH_TARGET_ERROR],
             "command": "python -m export.factory.face_closeups " + " ".join(sys.argv[1:])}
@@ -185,7 +192,7 @@ def run(data_root, out_root, splits=dataset.SPLITS, workers: int = 1, limit: int
     print(f"{sum(len(g[1]) for g in groups)} samples in {len(groups)} person groups to do", file=sys.stderr)
     start, written, tried = time.perf_counter(), 0, 0
     with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
-        futures = {pool.submit(render_person, str(data_root), str(out_root), split, ids): len(ids)
+        futures = {pool.submit(render_person, str(data_root), str(out_root), split, ids, body_input): len(ids)
                    for split, ids in groups}
         for future in as_completed(futures):
             written += len(future.result())
@@ -206,9 +213,12 @@ def main(argv=None) -> int:
     parser.add_argument("--splits", default=",".join(dataset.SPLITS))
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--limit", type=int, default=None, help="at most this many persons (a trial)")
+    parser.add_argument("--body-input", choices=("coarse", "truth"), default="coarse",
+                        help="the face net's body shading input (see above)")
     args = parser.parse_args(argv)
     try:
-        card = run(args.data, args.out, [s for s in args.splits.split(",") if s], args.workers, args.limit)
+        card = run(args.data, args.out, [s for s in args.splits.split(",") if s], args.workers, args.limit,
+                   args.body_input)
     except RelightError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code

@@ -15,7 +15,8 @@ from pathlib import Path
 
 from relightcli import __version__
 from relightcli.errors import EXIT_OK, EXIT_USAGE, RelightError, UsageError
-from relightcli.layers import DEFAULT_OUTPUTS, DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, LAYERS, METHODS
+from relightcli.layers import (DEFAULT_OUTPUTS, DEFAULT_RESOLUTION, DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, LAYERS,
+                               METHODS)
 
 SUBCOMMANDS = ("shade", "info", "eval")
 
@@ -64,9 +65,9 @@ def add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
                           help="stop each pixel at this relative standard error, at most "
                                f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
     parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
-    parser.add_argument("--resolution", type=_positive_int, default=None, metavar="PX",
-                        help="working resolution of the square person crop (default: the resolution "
-                             "the shipped networks were trained at; 512, the paper's, when unknown)")
+    parser.add_argument("--resolution", type=_positive_int, default=DEFAULT_RESOLUTION, metavar="PX",
+                        help=f"working resolution of the square person crop (default {DEFAULT_RESOLUTION}, "
+                             "the paper's; 256 is twice as fast)")
 
 
 def _positive_int(text: str) -> int:
@@ -145,9 +146,9 @@ def relight_parser() -> argparse.ArgumentParser:
                         help="with --engine ray: an existing cluster ('auto', 'ray://head:10001'); "
                              "default: start a local Ray instance")
     parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
-    parser.add_argument("--resolution", type=_positive_int, default=None, metavar="PX",
-                        help="working resolution of the square person crop (default: the resolution "
-                             "the shipped networks were trained at; 512, the paper's, when unknown)")
+    parser.add_argument("--resolution", type=_positive_int, default=DEFAULT_RESOLUTION, metavar="PX",
+                        help=f"working resolution of the square person crop (default {DEFAULT_RESOLUTION}, "
+                             "the paper's; 256 is twice as fast)")
     parser.add_argument("--max-pixels", type=_positive_int, default=100_000_000, metavar="N",
                         help="refuse images larger than N pixels before decoding (default 100 MP)")
     add_common_arguments(parser)
@@ -234,7 +235,7 @@ def run_relight(args) -> int:
         mask_path=None if args.mask is None else Path(args.mask),
         rotate_deg=args.rotate, exposure_ev=args.exposure, spp=args.spp,
         target_error=args.target_error, seed=args.seed, threads=max(1, threads // workers),
-        background=args.background, max_pixels=args.max_pixels, resolution=_resolution(args),
+        background=args.background, max_pixels=args.max_pixels, resolution=args.resolution,
         turntable=args.turntable)
 
     worker = RelightWorker(env, options)
@@ -258,14 +259,6 @@ def run_relight(args) -> int:
     return batch.exit_code(reports)
 
 
-def _resolution(args) -> int:
-    if args.resolution is not None:
-        return args.resolution
-    from relightcli.nets.manifest import working_resolution
-
-    return working_resolution()
-
-
 def run_eval(args) -> int:
     from relightcli import evaluate
     from relightcli.pipeline import RelightOptions, predict_scene
@@ -273,7 +266,7 @@ def run_eval(args) -> int:
     threads = args.threads or default_threads()
     options = RelightOptions(
         outputs=("relit", "albedo", "shading"), method=args.method, spp=args.spp,
-        target_error=args.target_error, seed=args.seed, threads=threads, resolution=_resolution(args))
+        target_error=args.target_error, seed=args.seed, threads=threads, resolution=args.resolution)
     scenes = evaluate.find_scenes(args.dataset)
     progress = _Progress(len(scenes), enabled=sys.stderr.isatty() and not args.json)
     result = evaluate.evaluate(

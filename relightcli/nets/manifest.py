@@ -156,20 +156,6 @@ def model_entry(name: str, directory: str | Path | None = None) -> ModelEntry:
     return entries[name]
 
 
-PAPER_RESOLUTION = 512
-
-
-def working_resolution(directory: str | Path | None = None) -> int:
-    """The crop resolution the shipped networks were trained at (the geometry net's training
-    data), so a photo is cropped at the scale the nets learned; the paper's 512 when the
-    manifest records none or has no geometry net."""
-    try:
-        entry = model_entry("geometry", directory)
-    except MissingDependencyError:
-        return PAPER_RESOLUTION
-    return int(entry.training_data.get("resolution", PAPER_RESOLUTION))
-
-
 def verified_file(name: str, directory: str | Path | None = None) -> Path:
     """The path of manifest entry `name` after checking it exists and matches its sha256;
     MissingDependencyError naming the file and the fix otherwise."""

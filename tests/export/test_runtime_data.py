@@ -106,7 +106,8 @@ def test_runtime_view_loses_detail_but_keeps_the_mean():
 
 def test_closeups_hold_the_face_path_inputs_and_target(copy, tmp_path):
     out = tmp_path / "closeups"
-    card = face_closeups.run(copy, out, ["val"], workers=1)
+    assert face_closeups.run(copy, out, ["val"], workers=1)["counts"]["val"] == 0  # waits for the coarse shading
+    card = face_closeups.run(copy, out, ["val"], workers=1, body_input="truth")
     data = dataset.open_dataset(out)
     assert card["counts"]["val"] == len(data.ids("val"))
     assert data.ids("val"), "the runtime's face fit refused every tiny sample"

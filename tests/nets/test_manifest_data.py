@@ -47,15 +47,3 @@ def test_unknown_kind_is_refused(tmp_path):
 
 def test_shipped_face_model_matches_manifest():
     assert verified_file("face_model").name == "face_model.npz"
-
-
-def test_working_resolution_follows_the_geometry_nets_training_data(tmp_path):
-    from relightcli.nets.manifest import PAPER_RESOLUTION, working_resolution
-
-    write_manifest(tmp_path, b"abc")
-    assert working_resolution(tmp_path) == PAPER_RESOLUTION  # no geometry net
-    manifest = json.loads((tmp_path / "manifest.json").read_text())
-    manifest["models"]["geometry"] = {"file": "g.onnx", "sha256": "0" * 64, "inputs": [], "outputs": [],
-                                      "multiple": 16, "training_data": {"resolution": 256}}
-    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    assert working_resolution(tmp_path) == 256
