@@ -132,3 +132,51 @@ def test_normal_angle_metric_of_the_truth_is_zero(dataset, tmp_path):
     got = trainer.task.metrics(out, example)
     assert got["normal_angle_deg"] == pytest.approx(0.0, abs=0.05)
     assert got["front_depth_mae"] == 0.0
+
+
+class RenderedDataset(FakeDataset):
+    """The fake samples plus what export.factory.coarse and face_closeups add: a coarse body
+    shading, a predicted AO and, the samples being 32 px like the face crop, close-up arrays."""
+
+    def load(self, split, sample_id):
+        sample = super().load(split, sample_id)
+        sample["coarse_shading_b"] = 0.7 * sample["shading_b"]
+        sample["ao_pred"] = np.full_like(sample["ao"], 0.5)
+        sample["coarse_face_b"] = 1.3 * sample["shading_b"]
+        sample["body_shading_b"] = 0.9 * sample["shading_b"]
+        sample["face_pixels"] = sample["mask"]
+        return sample
+
+
+def test_body_refinement_trains_on_the_rendered_coarse_shading_and_predicted_ao(tmp_path):
+    data = RenderedDataset({"train": 4, "val": 2, "test": 1}, size=32, seed=0)
+    trainer = Trainer(small_config("body_refine", coarse_shading="coarse_shading_b", ao_key="ao_pred"), data, tmp_path)
+    sample = data.load("val", "val_0000")
+    example = trainer.task.example(sample, np.random.default_rng(0))
+    inside = example["mask"][0] > 0.5
+    ratio = example["coarse_shading"][:, inside] / np.maximum(example["shading"][:, inside], 1e-12)
+    assert np.allclose(ratio[example["shading"][:, inside] > 1e-3], 0.7, rtol=1e-4)
+    assert np.all(example["ao"] == 0.5)
+    batch = trainer.next_batch()
+    first = trainer.train_step(batch)["reconstruction"]
+    for _ in range(6):
+        last = trainer.train_step(batch)["reconstruction"]
+    assert last < 0.9 * first
+
+
+def test_face_refinement_on_closeups_reports_the_gain_over_the_body_shading(tmp_path):
+    data = RenderedDataset({"train": 4, "val": 2, "test": 1}, size=32, seed=0)
+    trainer = Trainer(small_config("face_refine", coarse_shading="coarse_face_b"), data, tmp_path)
+    trainer.net = RefinedIsBody()
+    got = trainer.validate("val")
+    assert got["face_psnr_gain_over_body"] == pytest.approx(0.0, abs=1e-9)
+    assert got["face_psnr_body"] > got["face_psnr_coarse"]  # 0.9 x the truth vs 1.3 x
+
+
+class RefinedIsBody(nn.Module):
+    """Stub face-refinement net: returns its body shading input."""
+
+    output_names = ("shading",)
+
+    def forward(self, body_shading, face_shading):
+        return (body_shading,)
