@@ -95,10 +95,10 @@ def closeup_sample(person, spec, meta: dict, rect, landmark_net, face_model, rng
     env_a, env_b, _, background_env = render.sample_environments(spec, settings)
     k = np.float32(meta["exposure"])
     seed = 4 * spec.index + 7
-    shading_a = render._shade(scene, geometry, env_a, settings, maps["albedo"], seed).mean * k
-    shading_b = render._shade(scene, geometry, env_b, settings, maps["albedo"], seed + 1).mean * k
+    shading_a = render.shade(scene, geometry, env_a, settings, maps["albedo"], seed).mean * k
+    shading_b = render.shade(scene, geometry, env_b, settings, maps["albedo"], seed + 1).mean * k
     scene.close()
-    plate = render._background(spec, env_a, background_env, SIZE) * k
+    plate = render.background_plate_for(spec, env_a, background_env, SIZE) * k
     subject = camera_model.fill_edges(maps["albedo"] * shading_a, maps["mask"] > 0)
     photo = camera_model.photograph(camera_model.composite(subject, maps["coverage"], plate), 1.0,
                                     spec.augmentation)

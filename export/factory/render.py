@@ -157,7 +157,7 @@ def sample_environments(spec: SceneSpec, settings: RenderSettings):
     return env_a, (env_b * np.float32(gain)).astype(np.float32), gain, background
 
 
-def _background(spec, env_a, background_env, size):
+def background_plate_for(spec, env_a, background_env, size):
     """The background plate (size, size, 3) linear radiance; a borrowed HDRI is scaled so
     its median luminance matches that of lighting A's own view."""
     plate = camera_model.background_plate(background_env, size, size, spec.background_fov_deg)
@@ -168,7 +168,9 @@ def _background(spec, env_a, background_env, size):
     return plate * np.float32(np.median(camera_model.luminance(own)) / max(level, 1e-12))
 
 
-def _shade(scene, geometry, env, settings, albedo, seed):
+def shade(scene, geometry, env, settings, albedo, seed):
+    """The integrator's result for one lighting at the settings' effort (the albedo feeds the
+    second bounce when settings.bounces == 2)."""
     return shade_environment(scene, geometry, EnvironmentLight(env), spp=settings.spp,
                              target_error=settings.target_error, min_spp=settings.min_spp,
                              bounces=settings.bounces,
@@ -213,8 +215,8 @@ def render_sample(spec: SceneSpec, person, settings: RenderSettings = RenderSett
     env_a, env_b, gain_b, background_env = sample_environments(spec, settings)
     seed = 4 * spec.index
     ao = ambient_occlusion(scene, geometry, spp=settings.ao_spp, seed=seed + 1)
-    shading_a = _shade(scene, geometry, env_a, settings, maps["albedo"], seed + 2)
-    shading_b = _shade(scene, geometry, env_b, settings, maps["albedo"], seed + 3)
+    shading_a = shade(scene, geometry, env_a, settings, maps["albedo"], seed + 2)
+    shading_b = shade(scene, geometry, env_b, settings, maps["albedo"], seed + 3)
     k = camera_model.auto_exposure(maps["albedo"] * shading_a.mean, maps["mask"] > 0,
                                    spec.exposure_key)
     kf = np.float32(k)
@@ -228,7 +230,7 @@ def render_sample(spec: SceneSpec, person, settings: RenderSettings = RenderSett
     arrays["image_a"] = maps["albedo"] * arrays["shading_a"]
     arrays["relit_b"] = maps["albedo"] * arrays["shading_b"]
     # the photo: anti-aliased silhouette (coverage), edge pixels coloured by their neighbours
-    plate = _background(spec, env_a, background_env, res) * kf
+    plate = background_plate_for(spec, env_a, background_env, res) * kf
     subject = camera_model.fill_edges(arrays["image_a"], maps["mask"] > 0)
     coverage = maps["coverage"]
     arrays["input"] = camera_model.photograph(camera_model.composite(subject, coverage, plate),

@@ -1,0 +1,54 @@
+"""The README's relighting-quality table: `relight eval` for every method, with the predicted
+and with the true person mask, as markdown rows (and the JSON of each run under --out).
+
+    python bench/eval_table.py data/eval512 [--out bench/results/eval512] [--resolution 512]
+
+Eval scenes: `python -m export.factory.generate --out data/factory512test --count 20
+--splits test=1 --resolution 512 --workers 2 --seed 0 --spp 128 --target-error 0.03
+--bounces 2` then `python -m export.factory.eval_scenes data/factory512test data/eval512`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+RUNS = [  # (method, true mask)
+    ("raytrace", False), ("raytrace-norefine", False), ("sh9", False), ("sh25", False),
+    ("raytrace", True), ("raytrace-norefine", True), ("sh9", True),
+]
+
+
+def cell(layer: dict) -> str:
+    return f"{layer['mse']:.2f} / {layer['ssim']:.4f} / {layer['psnr']:.2f}"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dataset")
+    parser.add_argument("--out", default="bench/results/eval")
+    parser.add_argument("--resolution", type=int, default=None)
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for method, true_mask in RUNS:
+        command = [sys.executable, "-m", "relightcli", "eval", args.dataset, "--method", method, "--json"]
+        command += ["--use-gt-mask"] if true_mask else []
+        command += ["--resolution", str(args.resolution)] if args.resolution else []
+        result = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
+        name = f"{method}{'_gtmask' if true_mask else ''}"
+        (out / f"{name}.json").write_text(json.dumps(result, indent=1))
+        label = f"ours `{method}`" + (", true mask" if true_mask else "")
+        rows.append(f"| {label} | {cell(result['relit'])} | {cell(result['albedo'])} | "
+                    f"{cell(result['shading'])} | {result['seconds_per_image']:.1f} |")
+        print(rows[-1], flush=True)
+    (out / "table.md").write_text("\n".join(rows) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
