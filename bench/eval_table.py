@@ -26,27 +26,40 @@ def cell(layer: dict) -> str:
     return f"{layer['mse']:.2f} / {layer['ssim']:.4f} / {layer['psnr']:.2f}"
 
 
+def run_name(method: str, true_mask: bool) -> str:
+    return f"{method}{'_gtmask' if true_mask else ''}"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset")
     parser.add_argument("--out", default="bench/results/eval")
     parser.add_argument("--resolution", type=int, default=None)
+    parser.add_argument("--methods", default=None,
+                        help="comma-separated methods to (re)run; the table uses every run in --out")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    wanted = set(args.methods.split(",")) if args.methods else {method for method, _ in RUNS}
     for method, true_mask in RUNS:
+        if method not in wanted:
+            continue
         command = [sys.executable, "-m", "relightcli", "eval", args.dataset, "--method", method, "--json"]
         command += ["--use-gt-mask"] if true_mask else []
         command += ["--resolution", str(args.resolution)] if args.resolution else []
-        result = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
-        name = f"{method}{'_gtmask' if true_mask else ''}"
-        (out / f"{name}.json").write_text(json.dumps(result, indent=1))
-        label = f"ours `{method}`" + (", true mask" if true_mask else "")
-        rows.append(f"| {label} | {cell(result['relit'])} | {cell(result['albedo'])} | "
-                    f"{cell(result['shading'])} | {result['seconds_per_image']:.1f} |")
-        print(rows[-1], flush=True)
+        result = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+        (out / f"{run_name(method, true_mask)}.json").write_text(result)
+        print(f"{run_name(method, true_mask)} done", file=sys.stderr, flush=True)
+    rows = []
+    for method, true_mask in RUNS:
+        path = out / f"{run_name(method, true_mask)}.json"
+        if path.is_file():
+            result = json.loads(path.read_text())
+            label = f"ours `{method}`" + (", true mask" if true_mask else "")
+            rows.append(f"| {label} | {cell(result['relit'])} | {cell(result['albedo'])} | "
+                        f"{cell(result['shading'])} | {result['seconds_per_image']:.1f} |")
     (out / "table.md").write_text("\n".join(rows) + "\n")
+    print("\n".join(rows))
     return 0
 
 
