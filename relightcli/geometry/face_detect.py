@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -30,6 +30,8 @@ ROTATIONS = (0.0,)
 # Overlapping detections needed; 6 rejects the false faces the LBP cascade finds in smooth
 # noise, hair and fur (4-5 neighbours) and keeps the frontal faces of the sample photos (8-14)
 MIN_NEIGHBOURS = 6
+# With a person mask, the cascades scan its bounding box plus this margin only
+SEARCH_MARGIN_PX = 16
 SCALE_STEP = 1.05
 # A detection counts as inside the mask when this share of its box is person
 MIN_MASK_COVER = 0.5
@@ -88,9 +90,10 @@ def detect_face(image_rgb_linear, mask=None, *, model: FaceModel | None = None,
         raise InputError(f"face mask shape {np.asarray(mask).shape} differs from the image "
                          f"{grey.shape}", fix="pass the person mask of the same image")
     cascades = _cascades(model)
+    (x0, y0), region = _search_region(grey, mask)
     seen_small = False
     for angle in rotations:
-        boxes = _detect_rotated(grey, angle, cascades)
+        boxes = [replace(b, left=b.left + x0, top=b.top + y0) for b in _detect_rotated(region, angle, cascades)]
         seen_small |= any(min(b.width, b.height) < min_size for b in boxes)
         boxes = [b for b in boxes if min(b.width, b.height) >= min_size and _inside(b, mask)]
         if boxes:
@@ -180,6 +183,22 @@ def _unrotate(rect, count, back, angle) -> FaceBox:
     cx, cy = (lo + hi) / 2.0
     return FaceBox(left=cx - w / 2.0, top=cy - h / 2.0, width=w, height=h, angle=angle,
                    neighbours=count)
+
+
+def _search_region(grey, mask):
+    """((x0, y0), the part of `grey` worth scanning): the person's bounding box plus
+    SEARCH_MARGIN_PX, since a face must lie mostly inside the mask (_inside); the whole
+    picture without a mask. Scanning less is what makes a photo without a face cheap (the
+    cascades cost ~0.1 s on a whole 512 crop)."""
+    if mask is None:
+        return (0, 0), grey
+    rows, cols = np.nonzero(np.asarray(mask) > 0.5)
+    if rows.size == 0:
+        return (0, 0), grey[:0, :0]
+    height, width = grey.shape
+    y0, x0 = max(int(rows.min()) - SEARCH_MARGIN_PX, 0), max(int(cols.min()) - SEARCH_MARGIN_PX, 0)
+    y1, x1 = min(int(rows.max()) + 1 + SEARCH_MARGIN_PX, height), min(int(cols.max()) + 1 + SEARCH_MARGIN_PX, width)
+    return (x0, y0), grey[y0:y1, x0:x1]
 
 
 def _inside(box: FaceBox, mask) -> bool:
