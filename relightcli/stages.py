@@ -234,8 +234,10 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
     spp, target = sampling_effort(options)
     coarse, face_pixels = render_face_shading(frame.face_fit, models.light(frame.env), spp=spp,
                                               target_error=target, seed=options.seed, threads=1)
-    scale = shading_scale(frame.shading, frame.crop_mask)
-    refined = models.get("face_refine").predict(cut_crop(frame.shading, frame.face_crop), coarse, scale)
+    # The net learned on crops normalised by their own scale (the person's pixels of the crop)
+    body = cut_crop(frame.shading, frame.face_crop)
+    scale = shading_scale(body, cut_crop(frame.crop_mask, frame.face_crop))
+    refined = models.get("face_refine").predict(body, coarse, scale)
     weight = face_blend_weight(face_pixels)
     shading = paste_crop(frame.shading, np.maximum(refined, 0.0), weight, frame.face_crop)
     frame.shading = shading * frame.crop_mask[..., None]

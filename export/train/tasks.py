@@ -270,13 +270,15 @@ class FaceRefineTask(GANTask):
             return None
         shading = sample[self.config.shading_key]
         body, face = data.standin_face_shadings(shading, sample["mask"], rng, self.config.standin)
-        # The run time divides by the body's scale; the body's refined shading is close to the truth.
-        scale = np.float32(shading_scale(shading, sample["mask"]))
         cx, cy, side = data.face_square(sample["face_box"], self.config.face_margin)
         size = self.config.face_crop_size
 
         def crop(image):
             return chw(data.crop_resample(image, cx, cy, side, size))
+
+        # The run time divides by the face crop's own scale (of the body shading, close to the truth)
+        scale = np.float32(shading_scale(data.crop_resample(shading, cx, cy, side, size),
+                                         data.crop_resample(sample["mask"], cx, cy, side, size)))
 
         return {"body_shading": crop(body / scale), "face_shading": crop(face / scale),
                 "shading": crop(shading / scale), "mask": crop(sample["mask"])}

@@ -2,8 +2,8 @@
 Contracts: export/nets/body_refine.py and export/nets/face_refine.py.
 
 Shading is HDR, so both nets see shading divided by one per-image scale (`shading_scale`) and
-the result is multiplied back; the face net must use the body's scale, since its input is a
-crop of the refined body shading.
+the result is multiplied back; the face net uses the scale of its face crop of the body
+shading (the person's pixels of the crop), for both of its inputs.
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ class FaceRefineNet(ModelSession):
 
     def predict(self, body_shading: np.ndarray, face_shading: np.ndarray, scale: float) -> np.ndarray:
         """body_shading: (S, S, 3) face crop of the refined body shading; face_shading: (S, S, 3)
-        coarse ray-traced face shading (S = 128 in training); scale: the body's `shading_scale`.
+        coarse ray-traced face shading (S = 128 in training); scale: `shading_scale` of the
+        body crop over the person's pixels of the crop.
         All float32 linear >= 0. Returns the refined (S, S, 3) face shading, same units."""
         check_hwc(body_shading, 3, "body_shading")
         check_hwc(face_shading, 3, "face_shading")
