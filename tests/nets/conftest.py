@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 onnx = pytest.importorskip("onnx")
-from onnx import TensorProto, helper  # noqa: E402
-from onnx_toys import contract, save_graph, tensor, write_manifest  # noqa: E402
+from onnx import helper  # noqa: E402
+from onnx_toys import contract, save_graph, scalar, tensor, write_manifest  # noqa: E402
 
 
 @pytest.fixture
@@ -28,12 +28,8 @@ def body_model_dir(tmp_path):
         helper.make_node("Mul", ["ao_mean", "zero"], ["ao_zero"]),
         helper.make_node("Add", ["coarse_shading", "ao_zero"], ["shading"]),
     ]
-    graph = helper.make_graph(nodes, "toy", [tensor("coarse_shading", 3), tensor("ao", 1)],
-                              [tensor("shading", 3)],
-                              initializer=[helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0])])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    onnx.save(model, tmp_path / "body.onnx")
+    save_graph(tmp_path / "body.onnx", nodes, [tensor("coarse_shading", 3), tensor("ao", 1)],
+               [tensor("shading", 3)], initializer=[scalar("zero", 0.0)])
     write_manifest(tmp_path, {"body_refine": {
         "file": "body.onnx", "inputs": contract([("coarse_shading", 3), ("ao", 1)]),
         "outputs": contract([("shading", 3)])}})

@@ -16,13 +16,18 @@ def tensor(name: str, channels: int | str = 3):
     return helper.make_tensor_value_info(name, TensorProto.FLOAT, ["N", channels, "H", "W"])
 
 
-def save_graph(path, nodes, inputs, outputs, opset: int = 17):
-    graph = helper.make_graph(nodes, "toy", inputs, outputs)
+def save_graph(path, nodes, inputs, outputs, opset: int = 17, initializer=()):
+    graph = helper.make_graph(nodes, "toy", inputs, outputs, initializer=list(initializer))
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
     model.ir_version = 8
     onnx.checker.check_model(model)
     onnx.save(model, path)
     return path
+
+
+def scalar(name: str, value: float):
+    """A float constant for a graph's initializer list."""
+    return helper.make_tensor(name, TensorProto.FLOAT, [], [value])
 
 
 def contract(names_channels):

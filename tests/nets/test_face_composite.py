@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 onnx = pytest.importorskip("onnx")
-from onnx import TensorProto, helper  # noqa: E402
-from onnx_toys import contract, tensor, write_manifest  # noqa: E402
+from onnx import helper  # noqa: E402
+from onnx_toys import contract, save_graph, scalar, tensor, write_manifest  # noqa: E402
 
 from relightcli import compose  # noqa: E402
 from relightcli.geometry.face import CropRect, cut_crop, face_blend_weight, paste_crop  # noqa: E402
@@ -24,12 +24,8 @@ def face_net_dir(tmp_path):
     """Model "face_refine": shading = face_shading + 0 * body_shading (shows the coarse face)."""
     nodes = [helper.make_node("Mul", ["body_shading", "zero"], ["body_zero"]),
              helper.make_node("Add", ["face_shading", "body_zero"], ["shading"])]
-    graph = helper.make_graph(nodes, "toy", [tensor("body_shading", 3), tensor("face_shading", 3)],
-                              [tensor("shading", 3)],
-                              initializer=[helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0])])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    onnx.save(model, tmp_path / "face.onnx")
+    save_graph(tmp_path / "face.onnx", nodes, [tensor("body_shading", 3), tensor("face_shading", 3)],
+               [tensor("shading", 3)], initializer=[scalar("zero", 0.0)])
     write_manifest(tmp_path, {"face_refine": {
         "file": "face.onnx", "inputs": contract([("body_shading", 3), ("face_shading", 3)]),
         "outputs": contract([("shading", 3)]), "multiple": 8}})
