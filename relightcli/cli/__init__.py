@@ -132,11 +132,7 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("--background", type=_background, default="keep", metavar="MODE",
                         help="keep (original photo), env (the environment seen by a camera), "
                              "transparent (RGBA), or a colour like '#808080'")
-    sampling = parser.add_mutually_exclusive_group()
-    sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
-    sampling.add_argument("--target-error", type=_positive_float, metavar="E",
-                          help="stop each pixel at this relative standard error, at most "
-                               f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
+    add_sampling_arguments(parser)
     parser.add_argument("--workers", type=_positive_int, metavar="N",
                         help="processes for folder/many inputs (default: one per core; threads are "
                              "split so workers x threads <= cores)")
@@ -145,10 +141,6 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("--address", metavar="ADDR",
                         help="with --engine ray: an existing cluster ('auto', 'ray://head:10001'); "
                              "default: start a local Ray instance")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
-    parser.add_argument("--resolution", type=_positive_int, default=DEFAULT_RESOLUTION, metavar="PX",
-                        help=f"working resolution of the square person crop (default {DEFAULT_RESOLUTION}, "
-                             "the paper's; 256 is twice as fast)")
     parser.add_argument("--max-pixels", type=_positive_int, default=100_000_000, metavar="N",
                         help="refuse images larger than N pixels before decoding (default 100 MP)")
     add_common_arguments(parser)
