@@ -236,11 +236,13 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
                                               target_error=target, seed=options.seed, threads=1)
     # The net learned on crops normalised by their own scale (the person's pixels of the crop)
     body = cut_crop(frame.shading, frame.face_crop)
-    scale = shading_scale(body, cut_crop(frame.crop_mask, frame.face_crop))
+    mask = cut_crop(frame.crop_mask, frame.face_crop)
+    scale = shading_scale(body, mask)
     refined = models.get("face_refine").predict(body, coarse, scale)
-    weight = face_blend_weight(face_pixels)
-    shading = paste_crop(frame.shading, np.maximum(refined, 0.0), weight, frame.face_crop)
-    frame.shading = shading * frame.crop_mask[..., None]
+    # frame.shading is already the person's (times the soft crop mask): only the patch is masked,
+    # so the rest of the body keeps its values exactly
+    patch = np.maximum(refined, 0.0) * mask[..., None]
+    frame.shading = paste_crop(frame.shading, patch, face_blend_weight(face_pixels), frame.face_crop)
     frame.notes["face_refine"] = {"face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
 
 

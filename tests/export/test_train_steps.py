@@ -173,6 +173,20 @@ def test_face_refinement_on_closeups_reports_the_gain_over_the_body_shading(tmp_
     assert got["face_psnr_body"] > got["face_psnr_coarse"]  # 0.9 x the truth vs 1.3 x
 
 
+def test_face_closeups_are_normalised_by_the_body_shading_as_at_run_time(tmp_path):
+    """stages.stage_face_refine divides by the scale of the body shading it has, not the truth's."""
+    from relightcli.nets.refine import shading_scale
+
+    data = RenderedDataset({"train": 4, "val": 2, "test": 1}, size=32, seed=0)
+    trainer = Trainer(small_config("face_refine", coarse_shading="coarse_face_b"), data, tmp_path)
+    sample = data.load("val", "val_0000")
+    example = trainer.task.example(sample, np.random.default_rng(0))
+    body = np.moveaxis(example["body_shading"], 0, -1)
+    assert shading_scale(body, sample["mask"]) == pytest.approx(1.0, rel=1e-5)
+    truth = np.moveaxis(example["shading"], 0, -1)
+    assert shading_scale(truth, sample["mask"]) == pytest.approx(1 / 0.9, rel=1e-4)
+
+
 class RefinedIsBody(nn.Module):
     """Stub face-refinement net: returns its body shading input."""
 

@@ -68,10 +68,14 @@ def test_face_refinement_composites_the_face_net_answer_over_the_face(face_net_d
     fit = fit_face(world_to_pixel(points, rect, (128, 128)), model, rect, (128, 128), landmark_sigma_px=0.1)
 
     radiance = np.float32(2.0)
-    body = np.full((size, size, 3), 0.5, np.float32)
+    # A soft person mask (a ramp at the left, as the crop's anti-aliased edges): the body's
+    # shading is already multiplied by it, and must not be multiplied again
+    crop_mask = np.ones((size, size), np.float32)
+    crop_mask[:, :40] = np.linspace(0.0, 1.0, 40, dtype=np.float32)
+    body = 0.5 * np.repeat(crop_mask[..., None], 3, axis=2)
     frame = Frame(image=np.zeros((size, size, 3), np.float32), mask=None,
                   env=np.full((8, 16, 3), radiance, np.float32))
-    frame.crop_mask = np.ones((size, size), np.float32)
+    frame.crop_mask = crop_mask
     frame.shading, frame.face_fit, frame.face_crop = body.copy(), fit, crop
     stage_face_refine(frame, RelightOptions(spp=16, threads=1), ToyModels(face_net_dir))
 
@@ -79,7 +83,7 @@ def test_face_refinement_composites_the_face_net_answer_over_the_face(face_net_d
     outside = np.ones((size, size), bool)
     outside[window] = False
     np.testing.assert_array_equal(frame.shading[outside], body[outside])  # nothing else moves
-    changed = np.abs(frame.shading[window] - 0.5).max(axis=-1) > 0.05
+    changed = np.abs(frame.shading[window] - body[window]).max(axis=-1) > 0.05
     assert changed.sum() > 300  # the face (a ~40 x 50 px region of the person crop)
     # Deep inside the face the net's answer (the coarse face: ~2 under a uniform sky of 2) wins
     centre_row, centre_col = crop.top + crop.size // 2, crop.left + crop.size // 2
