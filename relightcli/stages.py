@@ -158,7 +158,9 @@ def build_scene(frame: Frame, options) -> None:
     # samples on its own forked workers; a tracing pool would spawn a process per photo
     # Area-weighted vertex normals of our own (trimesh's take ~4x longer at 512)
     frame.scene = Scene(frame.mesh.vertices, frame.mesh.faces, threads=1)
-    hits = render_pixel_geometry(frame.scene, compose.CROP_RECT, (options.resolution,) * 2)
+    # Only the person's pixels: the shading is multiplied by the crop mask, so nothing else is shaded
+    hits = render_pixel_geometry(frame.scene, compose.CROP_RECT, (options.resolution,) * 2,
+                                 where=frame.crop_mask > 0)
     frame.hits = hits.with_shading_normals(frame.geometry.front_normal, frame.crop_mask > 0.5)
     frame.notes.setdefault("scene_builds", 0)
     frame.notes["scene_builds"] += 1

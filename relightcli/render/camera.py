@@ -71,27 +71,34 @@ def default_rect(scene: Scene, pad: float = 0.05):
     return (lo[0] - dx, hi[0] + dx, lo[1] - dy, hi[1] + dy)
 
 
-def render_pixel_geometry(scene: Scene, rect, resolution) -> PixelGeometry:
-    """Trace one orthographic primary ray per pixel (a single batch) along -Z."""
+def render_pixel_geometry(scene: Scene, rect, resolution, where=None) -> PixelGeometry:
+    """Trace one orthographic primary ray per pixel (a single batch) along -Z; with `where`
+    (H, W) bool, only at those pixels (the others see nothing: no work for pixels whose
+    shading nobody uses)."""
     centres = pixel_centres(rect, resolution)
     height, width = centres.shape[:2]
+    traced = np.ones((height, width), bool) if where is None else np.asarray(where, bool)
+    if traced.shape != (height, width):
+        raise UsageError(f"where is {traced.shape}, the image {height}x{width}")
     # Start above the mesh's local z range, in the local frame (float64 until the cast)
     z_start = scene.bounds_local[1, 2] + 0.01 * scene.diagonal
-    world_xy = centres.reshape(-1, 2)
+    world_xy = centres[traced]
     origins = np.empty((world_xy.shape[0], 3))
     origins[:, :2] = world_xy - scene.centre[:2]
     origins[:, 2] = z_start
     directions = np.tile(np.array([0.0, 0.0, -1.0]), (origins.shape[0], 1))
     hits = scene.intersect(origins, directions)
-    mask = hits.hit
     ns, ng = orient_normals(hits.geometric_normal, scene.shading_normals(hits), directions)
     position = origins + hits.t[:, None].astype(np.float64) * directions
-    zero = ~mask[:, None]
-    return PixelGeometry(
-        mask=mask.reshape(height, width),
-        position=np.where(zero, 0.0, position).astype(np.float32).reshape(height, width, 3),
-        normal=np.where(zero, 0.0, ns).astype(np.float32).reshape(height, width, 3),
-        geometric_normal=np.where(zero, 0.0, ng).astype(np.float32).reshape(height, width, 3),
-        rect=tuple(float(c) for c in rect),
-    )
+    hit = hits.hit[:, None]
+    mask = np.zeros((height, width), bool)
+    mask[traced] = hits.hit
+
+    def image(values):
+        out = np.zeros((height, width, 3), np.float32)
+        out[traced] = np.where(hit, values, 0.0)
+        return out
+
+    return PixelGeometry(mask=mask, position=image(position), normal=image(ns),
+                         geometric_normal=image(ng), rect=tuple(float(c) for c in rect))
 

@@ -45,6 +45,20 @@ def test_sphere_hits_lie_on_the_sphere(radius):
     assert np.all(geometry.normal[geometry.mask][:, 2] > 0)
 
 
+def test_tracing_only_where_asked_gives_the_same_hits_there_and_nothing_elsewhere():
+    scene = Scene.from_trimesh(trimesh.creation.icosphere(subdivisions=3))
+    rect = (-1.2, 1.2, -1.2, 1.2)
+    rows, cols = np.mgrid[:40, :40]
+    where = (rows < 25) & (cols > 8)
+    full = render_pixel_geometry(scene, rect, (40, 40))
+    part = render_pixel_geometry(scene, rect, (40, 40), where=where)
+    np.testing.assert_array_equal(part.mask, full.mask & where)
+    for name in ("position", "normal", "geometric_normal"):
+        np.testing.assert_array_equal(getattr(part, name)[where], getattr(full, name)[where])
+        assert np.all(getattr(part, name)[~where] == 0)
+    assert not render_pixel_geometry(scene, rect, (40, 40), where=np.zeros((40, 40), bool)).mask.any()
+
+
 def test_back_faces_are_flipped_toward_the_camera():
     vertices, faces = quad(-1.0, 1.0, -1.0, 1.0, 0.0)
     scene = Scene(vertices, faces[:, ::-1])  # winding faces -Z
