@@ -100,6 +100,28 @@ def relight(albedo: np.ndarray, shading: np.ndarray) -> np.ndarray:
     return (albedo * shading).astype(np.float32)
 
 
+# The photo / shading ratio is ill-conditioned where the estimated input shading is dark (noise
+# and clipping divided by almost nothing): below RATIO_DARK x the person's median shading the
+# net's albedo takes over, fully at RATIO_DARK and not at all from 4 x RATIO_DARK on
+RATIO_DARK = 0.05
+
+
+def ratio_albedo(image: np.ndarray, input_shading: np.ndarray, fallback: np.ndarray,
+                 mask: np.ndarray) -> np.ndarray:
+    """Albedo as image / input_shading (the inverse of `relight`), clipped to [0, 1], blended
+    into `fallback` where the shading is too dark to divide by (RATIO_DARK). All (H, W, 3)
+    float32 linear except mask (H, W) in [0, 1]; the fallback alone when the person's shading
+    is black."""
+    level = input_shading.mean(axis=-1)
+    inside = level[mask > 0.5]
+    median = float(np.median(inside)) if inside.size else 0.0
+    if not median > 0:
+        return np.asarray(fallback, np.float32)
+    weight = np.clip((level / median - RATIO_DARK) / (3 * RATIO_DARK), 0.0, 1.0)[..., None]
+    ratio = np.clip(image / np.maximum(input_shading, 1e-6 * median), 0.0, 1.0)
+    return (weight * ratio + (1.0 - weight) * fallback).astype(np.float32)
+
+
 def display_exposure(relit: np.ndarray, mask: np.ndarray, target: float) -> float:
     """The factor that maps the 95th percentile of the person's luminance to `target`, for LDR
     outputs (an HDR environment gives radiance in arbitrary units; a PNG clips at 1). 1.0 for a

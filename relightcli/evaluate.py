@@ -151,6 +151,7 @@ def format_table(result: dict) -> str:
     for layer in LAYERS:
         values = result[layer]
         ours.append("n/a" if values["mse"] is None else f"{values['mse']:.4g} / {values['ssim']:.4f} / {values['psnr']:.2f}")
-    lines.append(f"{'ours: ' + result['method']:<24} | " + " | ".join(f"{c:^24}" for c in ours))
+    name = result["method"] + (", net albedo" if result.get("albedo_source") == "net" else "")
+    lines.append(f"{'ours: ' + name:<24} | " + " | ".join(f"{c:^24}" for c in ours))
     lines.append(f"{result['scenes']} scenes, {result['failed']} failed")
     return "\n".join(lines)

@@ -62,6 +62,7 @@ def output_needs(output: str, method: str) -> tuple[str, ...]:
 class RelightOptions:
     outputs: tuple[str, ...] = ("relit",)
     method: str = "raytrace"
+    albedo: str = "ratio"  # layers.ALBEDO_SOURCES
     mask_path: Path | None = None
     rotate_deg: float = 0.0
     exposure_ev: float = 0.0

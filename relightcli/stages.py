@@ -111,8 +111,20 @@ def stage_ao(frame: Frame, options, models: Models) -> None:
 
 
 def stage_delight(frame: Frame, options, models: Models) -> None:
+    """De-lighting net: the input lighting (16x32) and an albedo. With `--albedo ratio` (the
+    default) the albedo is the crop divided by the SH-9 irradiance of that lighting at the
+    predicted normals (compose.ratio_albedo), the net's albedo only where that shading is too
+    dark to divide by; `--albedo net` keeps the net's (the paper's). Measured on the 20 eval
+    scenes at 512 (true mask, no refinement): albedo 16.67 vs 15.96 dB, relit 16.79 vs 15.32 dB:
+    our small net's light is better than its albedo."""
+    from relightcli.render.sh import project_sh, sh_irradiance_shading
+
     result = models.get("delight").predict(frame.crop, frame.normal)
-    frame.albedo = result.albedo * frame.crop_mask[..., None]
+    albedo = result.albedo
+    if options.albedo == "ratio":
+        input_shading = sh_irradiance_shading(project_sh(result.light, 2), frame.normal)
+        albedo = compose.ratio_albedo(frame.crop, input_shading, result.albedo, frame.crop_mask)
+    frame.albedo = albedo * frame.crop_mask[..., None]
     frame.light = result.light
 
 

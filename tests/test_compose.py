@@ -17,6 +17,7 @@ from relightcli.compose import (
     paste_back,
     person_crop_box,
     preview_sheet,
+    ratio_albedo,
     relight,
 )
 from relightcli.errors import InputError
@@ -187,3 +188,30 @@ def test_preview_sheet_shape():
     sheet = preview_sheet(tiles, height=64)
     assert sheet.shape == (64 + 24, 32 + 4 + 64, 3)
     assert 0.0 <= sheet.min() and sheet.max() <= 1.0
+
+
+def test_ratio_albedo_inverts_relight_where_the_shading_is_bright():
+    rng = np.random.default_rng(0)
+    albedo = rng.uniform(0.05, 0.95, (16, 16, 3)).astype(np.float32)
+    shading = rng.uniform(0.5, 3.0, (16, 16, 3)).astype(np.float32)
+    fallback = np.full_like(albedo, 0.3)
+    got = ratio_albedo(relight(albedo, shading), shading, fallback, np.ones((16, 16)))
+    np.testing.assert_allclose(got, albedo, rtol=1e-5)
+
+
+def test_ratio_albedo_falls_back_where_the_shading_is_dark_and_stays_finite():
+    shading = np.ones((8, 8, 3), np.float32)
+    shading[:, :2] = 0.0  # facing away from every light
+    shading[:, 2] = 1e-6  # almost
+    shading[:, 7] = 1e6  # a sun a million times brighter
+    image = np.full((8, 8, 3), 0.4, np.float32)
+    fallback = np.full_like(image, 0.7)
+    got = ratio_albedo(image, shading, fallback, np.ones((8, 8)))
+    assert np.isfinite(got).all() and got.min() >= 0.0 and got.max() <= 1.0
+    np.testing.assert_allclose(got[:, :3], 0.7)  # below RATIO_DARK x the median: the net's albedo
+    np.testing.assert_allclose(got[:, 3:7], 0.4)
+    np.testing.assert_allclose(got[:, 7], 0.4e-6, rtol=1e-4)
+    # Black shading everywhere (no light estimated): the net's albedo, not a division by zero
+    np.testing.assert_array_equal(ratio_albedo(image, np.zeros_like(image), fallback, np.ones((8, 8))), fallback)
+    # Saturated photo under dim light: clipped to a physical albedo
+    assert ratio_albedo(np.full_like(image, 0.9), np.full_like(image, 0.5), fallback, np.ones((8, 8))).max() == 1.0

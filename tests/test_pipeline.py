@@ -75,9 +75,9 @@ class StandInModels(Models):
     """Networks with known outputs: normals facing the camera, a disc mask, constant AO and
     albedo. Records which families were asked for; the environment cache is the real one."""
 
-    def __init__(self, albedo=0.5):
+    def __init__(self, albedo=0.5, input_light=0.0):
         super().__init__(threads=1)
-        self.albedo, self.used = albedo, []
+        self.albedo, self.input_light, self.used = albedo, input_light, []
 
     def get(self, family):
         self.used.append(family)
@@ -86,7 +86,8 @@ class StandInModels(Models):
     def predict(self, image, normal=None):
         size = image.shape[0]
         if normal is not None:  # delight
-            return DelightResult(np.full(image.shape, self.albedo, np.float32), np.zeros((16, 32, 3), np.float32))
+            return DelightResult(np.full(image.shape, self.albedo, np.float32),
+                                 np.full((16, 32, 3), self.input_light, np.float32))
         y, x = np.mgrid[:size, :size]
         disc = (((x - size / 2) ** 2 + (y - size / 2) ** 2) < (0.3 * size) ** 2).astype(np.float32)
         normals = np.zeros(image.shape, np.float32)
@@ -116,6 +117,18 @@ def test_sh_relit_under_constant_light_is_albedo_times_light(method):
     np.testing.assert_allclose(frame.relit[inner], np.broadcast_to([1.0, 0.5, 0.25], (inner.sum(), 3)), rtol=2e-3)
     assert frame.relit[~inside].max() <= 1.0 and np.isfinite(frame.relit).all()
     assert models.used.count("geometry") == 1 and "ao" not in models.used  # no AO net for SH
+
+
+@pytest.mark.parametrize("source, expected", [("ratio", 0.3 / 0.6), ("net", 0.25)])
+def test_albedo_is_the_photo_over_the_estimated_shading_or_the_nets(source, expected):
+    # Under the stand-in's constant input light 0.6 every normal's SH-9 irradiance is 0.6, so
+    # the photo's 0.3 divides into 0.5; --albedo net keeps the net's 0.25.
+    image, mask = photo_with_person()
+    options = RelightOptions(outputs=("albedo",), method="sh9", resolution=32, albedo=source)
+    frame, _ = run_stages(image, mask, np.ones((8, 16, 3), np.float32), options, ItemReport("x"),
+                          StandInModels(albedo=0.25, input_light=0.6))
+    inner = frame.crop_mask > 0.999
+    np.testing.assert_allclose(frame.albedo[inner], expected, rtol=2e-3)
 
 
 def test_mask_net_runs_only_without_alpha():

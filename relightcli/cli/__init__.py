@@ -15,8 +15,8 @@ from pathlib import Path
 
 from relightcli import __version__
 from relightcli.errors import EXIT_OK, EXIT_USAGE, RelightError, UsageError
-from relightcli.layers import (DEFAULT_OUTPUTS, DEFAULT_RESOLUTION, DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, LAYERS,
-                               METHODS)
+from relightcli.layers import (ALBEDO_SOURCES, DEFAULT_OUTPUTS, DEFAULT_RESOLUTION, DEFAULT_SPP_CAP,
+                               DEFAULT_TARGET_ERROR, LAYERS, METHODS)
 
 SUBCOMMANDS = ("shade", "info", "eval")
 
@@ -57,8 +57,11 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, writes: bool = True
                             help="replace existing outputs (default: refuse)")
 
 
-def add_sampling_arguments(parser: argparse.ArgumentParser) -> None:
-    """Ray-tracing effort, seed and working resolution (shared by relight and eval)."""
+def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
+    """Albedo source, ray-tracing effort, seed and working resolution (shared by relight and eval)."""
+    parser.add_argument("--albedo", choices=ALBEDO_SOURCES, default="ratio",
+                        help="albedo: the photo divided by the shading of the estimated input light "
+                             "(default; better with our small nets) or the de-lighting net's own (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
     sampling.add_argument("--target-error", type=_positive_float, metavar="E",
@@ -132,7 +135,7 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("--background", type=_background, default="keep", metavar="MODE",
                         help="keep (original photo), env (the environment seen by a camera), "
                              "transparent (RGBA), or a colour like '#808080'")
-    add_sampling_arguments(parser)
+    add_pipeline_arguments(parser)
     parser.add_argument("--workers", type=_positive_int, metavar="N",
                         help="processes for folder/many inputs (default: one per core; threads are "
                              "split so workers x threads <= cores)")
@@ -164,7 +167,7 @@ def eval_parser() -> argparse.ArgumentParser:
     parser.add_argument("--method", choices=METHODS, default="raytrace", help="shading method to evaluate")
     parser.add_argument("--use-gt-mask", action="store_true",
                         help="feed the ground-truth mask instead of predicting it (isolates the relighting)")
-    add_sampling_arguments(parser)
+    add_pipeline_arguments(parser)
     add_common_arguments(parser, writes=False)
     return parser
 
@@ -223,7 +226,7 @@ def run_relight(args) -> int:
     # One process per core by default; threads are split so workers x threads <= cores.
     workers = min(args.workers or threads, len(items))
     options = RelightOptions(
-        outputs=args.outputs, method=args.method,
+        outputs=args.outputs, method=args.method, albedo=args.albedo,
         mask_path=None if args.mask is None else Path(args.mask),
         rotate_deg=args.rotate, exposure_ev=args.exposure, spp=args.spp,
         target_error=args.target_error, seed=args.seed, threads=max(1, threads // workers),
@@ -257,13 +260,14 @@ def run_eval(args) -> int:
 
     threads = args.threads or default_threads()
     options = RelightOptions(
-        outputs=("relit", "albedo", "shading"), method=args.method, spp=args.spp,
+        outputs=("relit", "albedo", "shading"), method=args.method, albedo=args.albedo, spp=args.spp,
         target_error=args.target_error, seed=args.seed, threads=threads, resolution=args.resolution)
     scenes = evaluate.find_scenes(args.dataset)
     progress = _Progress(len(scenes), enabled=sys.stderr.isatty() and not args.json)
     result = evaluate.evaluate(
         scenes, lambda scene: predict_scene(scene, options, use_gt_mask=args.use_gt_mask),
         args.method, on_done=lambda entry: progress.step(entry["scene"]))
+    result["albedo_source"] = args.albedo
     progress.close()
     if args.json:
         print(json.dumps(result, indent=2))
