@@ -9,8 +9,9 @@ crop's size until an output needs them full frame: a 24 MP frame is 288 MB as fl
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from relightcli import compose
@@ -88,8 +89,9 @@ def stage_mask(frame: Frame, options, models: Models) -> None:
         return
     height, width = frame.image.shape[:2]
     side = max(height, width)
-    box = compose.CropBox((width - side) // 2, (height - side) // 2, side, options.resolution)
-    maps = models.get("geometry").predict(compose.crop_square(frame.image, box))
+    net = models.get("geometry")
+    box = compose.CropBox((width - side) // 2, (height - side) // 2, side, net_side(net, options.resolution))
+    maps = net.predict(compose.crop_square(frame.image, box))
     frame.mask = np.clip(compose.paste_back(maps.mask, box, height, width), 0.0, 1.0)
     frame.notes["mask"] = {"source": "mask net"}
 
@@ -101,13 +103,46 @@ def stage_crop(frame: Frame, options, models: Models) -> None:
     frame.notes["crop"] = {"box": [frame.box.x0, frame.box.y0, frame.box.size], "resolution": options.resolution}
 
 
+def net_side(net, working: int) -> int:
+    """The side a net runs at: the crop side it was trained on when that is smaller than the
+    working resolution, else the working resolution. The shipped nets learned on 256-pixel crops;
+    at a 512 crop they run at 256 and their maps are enlarged (the photo's own detail comes back
+    through the ray-traced shading of the full-resolution mesh and the ratio albedo)."""
+    trained = getattr(net, "trained_resolution", None)
+    return min(working, trained) if trained else working
+
+
+def resample(image: np.ndarray, side: int) -> np.ndarray:
+    """An (R, R[, C]) map resampled to (side, side[, C]): area-averaged when shrinking,
+    bilinear when enlarging; the same array when the side is already right."""
+    if image.shape[0] == side:
+        return image
+    interpolation = cv2.INTER_AREA if side < image.shape[0] else cv2.INTER_LINEAR
+    out = cv2.resize(np.asarray(image, np.float32), (side, side), interpolation=interpolation)
+    return out.reshape((side, side) + image.shape[2:])
+
+
+def unit(normals: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
+
+
 def stage_geometry(frame: Frame, options, models: Models) -> None:
-    frame.geometry = models.get("geometry").predict(frame.crop)
-    frame.normal = frame.geometry.front_normal * (frame.crop_mask[..., None] > 0.5)
+    net = models.get("geometry")
+    side = net_side(net, options.resolution)
+    g = net.predict(resample(frame.crop, side))
+    if side != options.resolution:
+        size = options.resolution
+        g = replace(g, front_normal=unit(resample(g.front_normal, size)), back_normal=unit(resample(g.back_normal, size)),
+                    front_depth=resample(g.front_depth, size), back_depth=resample(g.back_depth, size),
+                    mask=resample(g.mask, size))
+    frame.geometry = g
+    frame.normal = g.front_normal * (frame.crop_mask[..., None] > 0.5)
 
 
 def stage_ao(frame: Frame, options, models: Models) -> None:
-    frame.ao = models.get("ao").predict(frame.crop)
+    net = models.get("ao")
+    frame.ao = resample(net.predict(resample(frame.crop, net_side(net, options.resolution))), options.resolution)
 
 
 def stage_delight(frame: Frame, options, models: Models) -> None:
@@ -119,11 +154,13 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     our small net's light is better than its albedo."""
     from relightcli.render.sh import project_sh, sh_irradiance_shading
 
-    result = models.get("delight").predict(frame.crop, frame.normal)
-    albedo = result.albedo
+    net = models.get("delight")
+    side = net_side(net, options.resolution)
+    result = net.predict(resample(frame.crop, side), unit(resample(frame.normal, side)))
+    albedo = resample(result.albedo, options.resolution)
     if options.albedo == "ratio":
         input_shading = sh_irradiance_shading(project_sh(result.light, 2), frame.normal)
-        albedo = compose.ratio_albedo(frame.crop, input_shading, result.albedo, frame.crop_mask)
+        albedo = compose.ratio_albedo(frame.crop, input_shading, albedo, frame.crop_mask)
     frame.albedo = albedo * frame.crop_mask[..., None]
     frame.light = result.light
 
@@ -260,9 +297,29 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
     frame.notes["face_refine"] = {"face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
 
 
+REFINE_MAX_RATIO = 16.0
+
+
 def stage_refine(frame: Frame, options, models: Models) -> None:
-    """Full-body refinement net on [coarse shading, AO]: a residual on the coarse shading."""
-    refined = models.get("body_refine").predict(frame.coarse_shading, frame.ao, frame.crop_mask)
+    """Full-body refinement net on [coarse shading, AO]: a residual on the coarse shading.
+    Below the working resolution (net_side) the net's answer comes back as its ratio to the
+    coarse shading it saw, enlarged and applied to the full-resolution coarse shading, which
+    keeps the ray tracer's hard shadow edges."""
+    from relightcli.nets.refine import shading_scale
+
+    net = models.get("body_refine")
+    side = net_side(net, options.resolution)
+    coarse = frame.coarse_shading
+    if side == options.resolution:
+        refined = net.predict(coarse, frame.ao, frame.crop_mask)
+    else:
+        small = resample(coarse, side)
+        answer = net.predict(small, resample(frame.ao, side), resample(frame.crop_mask, side))
+        # The ratio's floor keeps it finite outside the person; its cap keeps a pixel the
+        # enlarged ratio reaches across an edge from being multiplied by nonsense
+        floor = np.float32(1e-4 * shading_scale(small, resample(frame.crop_mask, side)))
+        ratio = np.clip((np.maximum(answer, 0.0) + floor) / (small + floor), 0.0, REFINE_MAX_RATIO)
+        refined = coarse * resample(ratio, options.resolution)
     frame.shading = np.maximum(refined, 0.0) * frame.crop_mask[..., None]
 
 

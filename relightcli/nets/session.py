@@ -65,6 +65,9 @@ class ModelSession:
             raise UsageError(f"threads must be a positive integer, got {threads!r}", fix="use --threads 1 or more")
         self.entry: ModelEntry = model_entry(self.name, models_dir)
         self.path = self.entry.path
+        # The side of the square crops it learned on (manifest training_data), None if unknown
+        trained = self.entry.training_data.get("resolution")
+        self.trained_resolution: int | None = int(trained) if trained else None
         self.threads = threads
         self._check_family_contract()
         self._check_file(verify_sha256)
