@@ -107,7 +107,9 @@ def net_side(net, working: int) -> int:
     """The side a net runs at: the crop side it was trained on when that is smaller than the
     working resolution, else the working resolution. The shipped nets learned on 256-pixel crops;
     at a 512 crop they run at 256 and their maps are enlarged (the photo's own detail comes back
-    through the ray-traced shading of the full-resolution mesh and the ratio albedo)."""
+    through the ratio albedo and the full-resolution ray tracing). Measured on the 20 eval scenes
+    at 512 (true mask, no refinement) against running them at 512: shading 17.45 vs 16.79 dB,
+    relit 16.69 vs 16.79, albedo 16.64 vs 16.67, and a third of the nets' time."""
     trained = getattr(net, "trained_resolution", None)
     return min(working, trained) if trained else working
 
@@ -297,29 +299,12 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
     frame.notes["face_refine"] = {"face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
 
 
-REFINE_MAX_RATIO = 16.0
-
-
 def stage_refine(frame: Frame, options, models: Models) -> None:
     """Full-body refinement net on [coarse shading, AO]: a residual on the coarse shading.
-    Below the working resolution (net_side) the net's answer comes back as its ratio to the
-    coarse shading it saw, enlarged and applied to the full-resolution coarse shading, which
-    keeps the ray tracer's hard shadow edges."""
-    from relightcli.nets.refine import shading_scale
-
-    net = models.get("body_refine")
-    side = net_side(net, options.resolution)
-    coarse = frame.coarse_shading
-    if side == options.resolution:
-        refined = net.predict(coarse, frame.ao, frame.crop_mask)
-    else:
-        small = resample(coarse, side)
-        answer = net.predict(small, resample(frame.ao, side), resample(frame.crop_mask, side))
-        # The ratio's floor keeps it finite outside the person; its cap keeps a pixel the
-        # enlarged ratio reaches across an edge from being multiplied by nonsense
-        floor = np.float32(1e-4 * shading_scale(small, resample(frame.crop_mask, side)))
-        ratio = np.clip((np.maximum(answer, 0.0) + floor) / (small + floor), 0.0, REFINE_MAX_RATIO)
-        refined = coarse * resample(ratio, options.resolution)
+    It runs at the working resolution, not at its training side (net_side): at 256 on the 512
+    eval scenes (its answer applied as a ratio to the 512 coarse shading) it lowered the
+    shading (true mask 17.06 vs 17.45 dB unrefined), at 512 it raises it (17.60)."""
+    refined = models.get("body_refine").predict(frame.coarse_shading, frame.ao, frame.crop_mask)
     frame.shading = np.maximum(refined, 0.0) * frame.crop_mask[..., None]
 
 

@@ -244,8 +244,7 @@ def test_face_stage_is_planned_and_runs_once_a_face_refinement_ships(monkeypatch
 
 
 class LowResolutionModels(StandInModels):
-    """Stand-in nets trained on 16-pixel crops; the refinement net doubles its coarse shading.
-    Records the sides the nets were run at."""
+    """Stand-in nets trained on 16-pixel crops; records the sides the nets were run at."""
 
     trained_resolution = 16
 
@@ -255,15 +254,13 @@ class LowResolutionModels(StandInModels):
 
     def predict(self, image, *more):
         self.sides.append(image.shape[0])
-        if len(more) == 2:  # body refinement: (coarse shading, ao, mask)
-            return 2.0 * image
         if not more and image.ndim == 3 and self.used[-1] == "ao":
             return np.full(image.shape[:2], 0.8, np.float32)
         return super().predict(image, *more)
 
 
 def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one():
-    from relightcli.stages import Frame, stage_ao, stage_crop, stage_delight, stage_geometry, stage_refine
+    from relightcli.stages import Frame, stage_ao, stage_crop, stage_delight, stage_geometry
 
     image, mask = photo_with_person()
     models = LowResolutionModels()
@@ -275,12 +272,3 @@ def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one(
     assert frame.geometry.front_normal.shape == (32, 32, 3) and frame.ao.shape == (32, 32)
     np.testing.assert_allclose(np.linalg.norm(frame.geometry.front_normal, axis=-1), 1.0, rtol=1e-5)
     assert frame.albedo.shape == (32, 32, 3)
-    # The refinement's answer at 16 px comes back as a ratio: a hard shadow edge of the
-    # full-resolution coarse shading stays hard
-    coarse = np.ones((32, 32, 3), np.float32)
-    coarse[:, 16:] = 0.1
-    frame.coarse_shading = coarse
-    stage_refine(frame, options, models)
-    assert models.sides[-1] == 16
-    inside = frame.crop_mask > 0.999
-    np.testing.assert_allclose(frame.shading[inside], 2.0 * coarse[inside], rtol=2e-3)
