@@ -28,6 +28,9 @@ PAPER_LOSS = {
     "face_refine": {"l1": 5.0, "adversarial": 1.0},
     "landmarks": {"l1": 1.0},  # not in the paper: L1 on the landmark pixels
 }
+# Terms of our own, off unless a config weights them: the delight net's SH-9 irradiance of its
+# light against the true input shading (export.train.tasks.DelightTask)
+EXTRA_LOSS = {"delight": ("irradiance",)}
 DEFAULT_STANDIN = {
     "blur_sigma": 2.0,       # px: the smoothed reconstructed mesh loses fine shading detail
     "noise": 0.05,           # relative Monte Carlo noise of the ray tracer
@@ -87,10 +90,10 @@ class TrainConfig:
             raise ConfigError(f"max_minutes must be positive or null, got {self.max_minutes}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ConfigError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
-        unknown = set(self.loss) - set(PAPER_LOSS[self.net])
+        known = set(PAPER_LOSS[self.net]) | set(EXTRA_LOSS.get(self.net, ()))
+        unknown = set(self.loss) - known
         if unknown:
-            raise ConfigError(f"unknown loss terms {sorted(unknown)} for {self.net}; "
-                              f"known: {sorted(PAPER_LOSS[self.net])}")
+            raise ConfigError(f"unknown loss terms {sorted(unknown)} for {self.net}; known: {sorted(known)}")
         unknown = set(self.standin) - set(DEFAULT_STANDIN)
         if unknown:
             raise ConfigError(f"unknown standin keys {sorted(unknown)}; known: {sorted(DEFAULT_STANDIN)}")

@@ -21,8 +21,10 @@ from export.train.config import ConfigError, TrainConfig
 from export.train.losses import (angular_loss, fft_l1, gradient_l1, light_loss, masked_l1, perceptual,
                                  pyramid)
 from relightcli import metrics
+from relightcli.compose import RATIO_DARK, ratio_albedo
 from relightcli.io.images import linear_to_srgb
 from relightcli.nets.refine import shading_scale
+from relightcli.render.sh import BAND_FACTORS, project_sh, sh_basis, sh_irradiance_shading
 
 
 def chw(image: np.ndarray) -> np.ndarray:
@@ -155,20 +157,51 @@ class AOTask(Task):
 class DelightTask(Task):
     """[image, normal] -> albedo, light. Loss (paper): 500 L1 + 100 perceptual on the albedo
     over the person, 0.025 solid-angle-weighted log-L2 on the 16x32 light. The normal input
-    is the ground truth during training (the runtime feeds the geometry net's)."""
+    is the ground truth during training (the runtime feeds the geometry net's).
+
+    Ours, optional (loss weight "irradiance"): log-L1 between the SH-9 irradiance of the
+    predicted light at the true normals and the true input shading, where that shading is not
+    dark: what the runtime's ratio albedo (relightcli.compose.ratio_albedo) divides by."""
 
     family = "delight"
     input_keys = ("image", "normal")
 
+    def __init__(self, config: TrainConfig):
+        super().__init__(config)
+        self._projection = None
+
     def example(self, sample, rng):
-        return {"image": chw(sample["input"]), "normal": chw(sample["normal"]),
-                "albedo": chw(sample["albedo"]), "light": chw(sample["light_a"]), "mask": chw(sample["mask"])}
+        example = {"image": chw(sample["input"]), "normal": chw(sample["normal"]), "albedo": chw(sample["albedo"]),
+                   "light": chw(sample["light_a"]), "mask": chw(sample["mask"])}
+        if self.w.get("irradiance"):
+            shading, mask = sample["shading_a"], sample["mask"] > 0.5
+            level = shading.mean(axis=-1)
+            median = float(np.median(level[mask])) if mask.any() else 0.0
+            bright = mask & (level > RATIO_DARK * median)
+            example.update(irradiance_basis=chw(irradiance_basis(sample["normal"]) * bright[..., None]),
+                           shading_a=chw(shading), bright=chw(bright.astype(np.float32)),
+                           shading_floor=np.full((1, 1, 1), 0.01 * max(median, 1e-6), np.float32))
+        return example
 
     def losses(self, out, batch):
         m = batch["mask"]
-        return {"albedo_l1": self.w["l1"] * masked_l1(out["albedo"], batch["albedo"], m),
-                "albedo_perceptual": self.w["perceptual"] * perceptual(out["albedo"] * m, batch["albedo"] * m, m),
-                "light": self.w["light"] * light_loss(out["light"], batch["light"])}
+        terms = {"albedo_l1": self.w["l1"] * masked_l1(out["albedo"], batch["albedo"], m),
+                 "albedo_perceptual": self.w["perceptual"] * perceptual(out["albedo"] * m, batch["albedo"] * m, m),
+                 "light": self.w["light"] * light_loss(out["light"], batch["light"])}
+        if self.w.get("irradiance"):
+            irradiance = self.irradiance(out["light"], batch["irradiance_basis"])
+            floor, bright = batch["shading_floor"], batch["bright"]
+            d = (torch.log(irradiance.clamp_min(0) + floor) - torch.log(batch["shading_a"] + floor)).abs()
+            terms["irradiance"] = self.w["irradiance"] * (d * bright).sum() / (3 * bright.sum()).clamp_min(1)
+        return terms
+
+    def irradiance(self, light: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) SH-9 irradiance / pi of (N, 3, h, w) light maps at the normals whose
+        (N, 9, H, W) `irradiance_basis` is given (linear in the light: one matrix)."""
+        if self._projection is None or self._projection.shape[1] != light.shape[-2] * light.shape[-1]:
+            self._projection = torch.from_numpy(sh_projection_matrix(*light.shape[-2:])).to(light.dtype)
+        coefficients = torch.einsum("kt,nct->nkc", self._projection, light.flatten(2))
+        return torch.einsum("nkhw,nkc->nchw", basis, coefficients)
 
     def metrics(self, out, example):
         mask = example["mask"][0]
@@ -176,8 +209,27 @@ class DelightTask(Task):
         true = protocol_encode(hwc(example["albedo"]))
         with torch.no_grad():
             light = float(light_loss(torch.from_numpy(out["light"][None]), torch.from_numpy(example["light"][None])))
+        # The runtime's default albedo: the photo over the SH-9 shading of the predicted light
+        normal = hwc(example["normal"])
+        shading = sh_irradiance_shading(project_sh(hwc(out["light"]), 2), normal)
+        ratio = ratio_albedo(hwc(example["image"]), shading, hwc(out["albedo"]), mask)
         return {"albedo_mse": metrics.mse(pred, true, mask), "albedo_psnr": metrics.psnr(pred, true, mask),
-                "albedo_ssim": metrics.ssim(pred, true, mask), "light_log_l2": light}
+                "albedo_ssim": metrics.ssim(pred, true, mask), "light_log_l2": light,
+                "ratio_albedo_psnr": metrics.psnr(protocol_encode(ratio), true, mask)}
+
+
+def irradiance_basis(normals: np.ndarray) -> np.ndarray:
+    """(H, W, 9) float32: SH-9 basis x band factor / pi at unit normals (H, W, 3), so that
+    irradiance / pi = basis @ project_sh(light, 2) (relightcli.render.sh)."""
+    factors = np.asarray(BAND_FACTORS)[[0, 1, 1, 1, 2, 2, 2, 2, 2]] / np.pi
+    return (sh_basis(normals, 2) * factors).astype(np.float32)
+
+
+def sh_projection_matrix(height: int, width: int) -> np.ndarray:
+    """(9, height * width) float32: project_sh(light, 2) = matrix @ light texels (row-major)."""
+    texels = height * width
+    one_hot = np.eye(texels, dtype=np.float64).reshape(height, width, texels)
+    return project_sh(one_hot, 2).astype(np.float32)
 
 
 def coarse_body_shading(config: TrainConfig, sample: dict, rng: np.random.Generator) -> np.ndarray:

@@ -137,8 +137,8 @@ def _row_nodes(height, width, rows):
 def project_sh(env, order):
     """SH coefficients of an environment map: the integral of L * Y over the sphere.
 
-    env: (H, 2H, 3) linear radiance, constant over each texel. Returns ((order + 1) ** 2, 3)
-    float64. Each texel row is integrated with 3 Gauss-Legendre nodes in cos(theta) (exact
+    env: (H, 2H, C) linear radiance (C = 3 for RGB), constant over each texel. Returns
+    ((order + 1) ** 2, C) float64. Each texel row is integrated with 3 Gauss-Legendre nodes in cos(theta) (exact
     for zonal terms) and column centres in phi; maps with fewer than 128 rows are first split
     into equal cells (np.repeat) so tiny maps (2x1) do not alias in phi. A constant map gives
     exactly its DC term.
@@ -148,7 +148,7 @@ def project_sh(env, order):
     split = max(1, math.ceil(_MIN_PROJECTION_ROWS / env.shape[0]))
     env = np.repeat(np.repeat(env, split, axis=0), split, axis=1)
     height, width = env.shape[:2]
-    coeffs = np.zeros((coefficient_count(order), 3))
+    coeffs = np.zeros((coefficient_count(order), env.shape[-1]))
     # row chunks bound the (rows, 3, W, n) basis array for large maps
     for start in range(0, height, _ROWS_PER_CHUNK):
         stop = min(start + _ROWS_PER_CHUNK, height)

@@ -194,3 +194,22 @@ class RefinedIsBody(nn.Module):
 
     def forward(self, body_shading, face_shading):
         return (body_shading,)
+
+
+def test_delight_irradiance_loss_is_the_runtime_sh9_shading_of_the_predicted_light(tmp_path, dataset):
+    from relightcli.render.sh import project_sh, sh_irradiance_shading
+
+    config = small_config("delight", loss={"l1": 500.0, "perceptual": 100.0, "light": 0.025, "irradiance": 10.0})
+    trainer = Trainer(config, dataset, tmp_path)
+    sample = dataset.load("val", "val_0000")
+    example = trainer.task.example(sample, np.random.default_rng(0))
+    light = np.random.default_rng(1).uniform(0.0, 2.0, (16, 32, 3)).astype(np.float32)
+    got = trainer.task.irradiance(torch.from_numpy(light.transpose(2, 0, 1)[None]),
+                                  torch.from_numpy(example["irradiance_basis"][None]))[0].numpy()
+    bright = example["bright"][0] > 0.5
+    want = sh_irradiance_shading(project_sh(light, 2), sample["normal"])
+    assert bright.any()
+    np.testing.assert_allclose(np.moveaxis(got, 0, -1)[bright], want[bright], rtol=1e-4, atol=1e-5)
+    terms = trainer.train_step(trainer.next_batch())
+    assert np.isfinite(terms["irradiance"]) and terms["irradiance"] > 0
+    assert "ratio_albedo_psnr" in trainer.validate("val")
