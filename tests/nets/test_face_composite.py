@@ -87,7 +87,8 @@ def test_face_refinement_composites_the_face_net_answer_over_the_face(face_net_d
     assert changed.sum() > 300  # the face (a ~40 x 50 px region of the person crop)
     # Deep inside the face the net's answer (the coarse face: ~2 under a uniform sky of 2) wins
     centre_row, centre_col = crop.top + crop.size // 2, crop.left + crop.size // 2
-    assert 1.6 < frame.shading[centre_row, centre_col].mean() <= 2.0 + 1e-3
+    centre = frame.shading[centre_row - 4:centre_row + 5, centre_col - 4:centre_col + 5].mean(axis=-1)
+    assert 1.6 < np.median(centre) and centre.max() <= 2.0 + 1e-3
     assert frame.notes["face_refine"]["face_pixels"] > 1000
 
 
