@@ -16,9 +16,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-RUNS = [  # (method, true mask)
-    ("raytrace", False), ("raytrace-norefine", False), ("sh9", False), ("sh25", False),
-    ("raytrace", True), ("raytrace-norefine", True), ("sh9", True),
+RUNS = [  # (method, true mask, albedo source)
+    ("raytrace", False, "ratio"), ("raytrace-norefine", False, "ratio"), ("sh9", False, "ratio"),
+    ("sh25", False, "ratio"), ("raytrace", False, "net"),
+    ("raytrace", True, "ratio"), ("raytrace-norefine", True, "ratio"), ("sh9", True, "ratio"),
+    ("raytrace", True, "net"),
 ]
 
 
@@ -26,8 +28,8 @@ def cell(layer: dict) -> str:
     return f"{layer['mse']:.2f} / {layer['ssim']:.4f} / {layer['psnr']:.2f}"
 
 
-def run_name(method: str, true_mask: bool) -> str:
-    return f"{method}{'_gtmask' if true_mask else ''}"
+def run_name(method: str, true_mask: bool, albedo: str) -> str:
+    return f"{method}{'_gtmask' if true_mask else ''}{'_netalbedo' if albedo == 'net' else ''}"
 
 
 def main() -> int:
@@ -40,22 +42,25 @@ def main() -> int:
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    wanted = set(args.methods.split(",")) if args.methods else {method for method, _ in RUNS}
-    for method, true_mask in RUNS:
+    wanted = set(args.methods.split(",")) if args.methods else {method for method, _, _ in RUNS}
+    for method, true_mask, albedo in RUNS:
         if method not in wanted:
             continue
-        command = [sys.executable, "-m", "relightcli", "eval", args.dataset, "--method", method, "--json"]
+        command = [sys.executable, "-m", "relightcli", "eval", args.dataset, "--method", method,
+                   "--albedo", albedo, "--json"]
         command += ["--use-gt-mask"] if true_mask else []
         command += ["--resolution", str(args.resolution)] if args.resolution else []
         result = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-        (out / f"{run_name(method, true_mask)}.json").write_text(result)
-        print(f"{run_name(method, true_mask)} done", file=sys.stderr, flush=True)
+        name = run_name(method, true_mask, albedo)
+        (out / f"{name}.json").write_text(result)
+        print(f"{name} done", file=sys.stderr, flush=True)
     rows = []
-    for method, true_mask in RUNS:
-        path = out / f"{run_name(method, true_mask)}.json"
+    for method, true_mask, albedo in RUNS:
+        path = out / f"{run_name(method, true_mask, albedo)}.json"
         if path.is_file():
             result = json.loads(path.read_text())
-            label = f"ours `{method}`" + (", true mask" if true_mask else "")
+            label = (f"ours `{method}`" + (", true mask" if true_mask else "")
+                     + (", net albedo (`--albedo net`)" if albedo == "net" else ""))
             rows.append(f"| {label} | {cell(result['relit'])} | {cell(result['albedo'])} | "
                         f"{cell(result['shading'])} | {result['seconds_per_image']:.1f} |")
     (out / "table.md").write_text("\n".join(rows) + "\n")
