@@ -29,16 +29,17 @@ MASK = REPO / "examples" / "skier_mask.png"
 HDR = REPO / "examples" / "noon_grass.hdr"
 
 
-def stage_times(runs: int, resolution: int, threads: int, spp, target_error) -> dict:
+def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
+                photo=EXAMPLE, mask_path=MASK, hdr=HDR) -> dict:
     from relightcli.batch import ItemReport
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
     from relightcli.pipeline import RelightOptions, run_stages
     from relightcli.stages import Models
 
-    image = read_image(EXAMPLE)
-    mask = read_image(MASK, srgb=False).rgb[..., 0]
-    env = load_envmap(HDR)
+    image = read_image(photo)
+    mask = read_image(mask_path, srgb=False).rgb[..., 0]
+    env = load_envmap(hdr)
     options = RelightOptions(outputs=("relit",), resolution=resolution, threads=threads, spp=spp,
                              target_error=target_error)
     models = Models(threads)
@@ -46,7 +47,7 @@ def stage_times(runs: int, resolution: int, threads: int, spp, target_error) -> 
     rows = []
     for seed in range(runs):
         options.seed = seed
-        report = ItemReport(str(EXAMPLE))
+        report = ItemReport(str(photo))
         start = time.perf_counter()
         frame, _ = run_stages(image.rgb, mask, env, options, report, models)
         report.seconds["total"] = time.perf_counter() - start
@@ -93,6 +94,13 @@ def _peak_reporter(path: Path) -> list[str]:
     return [sys.executable, "-c", script, str(path)]
 
 
+def scene_files(scene: Path | None) -> tuple[Path, Path, Path]:
+    """(photo, mask, environment) of an eval scene folder, or the shipped example's."""
+    if scene is None:
+        return EXAMPLE, MASK, HDR
+    return scene / "input.png", scene / "gt_mask.png", scene / "target.hdr"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5)
@@ -101,12 +109,16 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=None)
     parser.add_argument("--target-error", type=float, default=None)
     parser.add_argument("--memory", action="store_true", help="also measure peak memory on a 24 MP photo")
+    parser.add_argument("--scene", type=Path, default=None,
+                        help="an eval scene folder (input.png, gt_mask.png, target.hdr) instead of the example, "
+                             "e.g. one with a face to time the face path")
     args = parser.parse_args()
     from relightcli.layers import DEFAULT_RESOLUTION
 
     resolution = args.resolution or DEFAULT_RESOLUTION
     result = {"resolution": resolution, "threads": args.threads, "cpu": os.cpu_count(),
-              "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error)}
+              "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error,
+                                            *scene_files(args.scene))}
     if args.memory:
         result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp)
     print(f"median over {args.runs} runs, {resolution}x{resolution} crop, {args.threads} threads")
@@ -114,7 +126,8 @@ def main() -> None:
         print(f"  {stage:<22} {seconds:8.3f}")
     if "memory" in result:
         print(f"24 MP photo: peak RSS {result['memory']['peak_rss_mb']:.0f} MB, {result['memory']['seconds']:.1f} s")
-    out = REPO / "bench" / "results" / f"pipeline_{resolution}.json"
+    suffix = f"_{args.scene.name}" if args.scene else ""
+    out = REPO / "bench" / "results" / f"pipeline_{resolution}{suffix}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")
 
