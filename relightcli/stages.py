@@ -296,14 +296,14 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
     coarse = resample(coarse, crop.resolution)
     face_pixels = resample(face_pixels.astype(np.float32), crop.resolution) > 0.5
     # The net learned on crops normalised by their own scale (the person's pixels of the crop)
-    body = cut_crop(frame.shading, frame.face_crop)
-    mask = cut_crop(frame.crop_mask, frame.face_crop)
+    body = cut_crop(frame.shading, crop)
+    mask = cut_crop(frame.crop_mask, crop)
     scale = shading_scale(body, mask)
     refined = models.get("face_refine").predict(body, coarse, scale)
     # frame.shading is already the person's (times the soft crop mask): only the patch is masked,
     # so the rest of the body keeps its values exactly
     patch = np.maximum(refined, 0.0) * mask[..., None]
-    frame.shading = paste_crop(frame.shading, patch, face_blend_weight(face_pixels), frame.face_crop)
+    frame.shading = paste_crop(frame.shading, patch, face_blend_weight(face_pixels), crop)
     frame.notes["face_refine"] = {"face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
 
 

@@ -24,7 +24,7 @@ from relightcli import metrics
 from relightcli.compose import RATIO_DARK, ratio_albedo
 from relightcli.io.images import linear_to_srgb
 from relightcli.nets.refine import shading_scale
-from relightcli.render.sh import BAND_FACTORS, project_sh, sh_basis, sh_irradiance_shading
+from relightcli.render.sh import irradiance_basis, project_sh, sh_irradiance_shading
 
 
 def chw(image: np.ndarray) -> np.ndarray:
@@ -178,7 +178,7 @@ class DelightTask(Task):
             level = shading.mean(axis=-1)
             median = float(np.median(level[mask])) if mask.any() else 0.0
             bright = mask & (level > RATIO_DARK * median)
-            example.update(irradiance_basis=chw(irradiance_basis(sample["normal"]) * bright[..., None]),
+            example.update(irradiance_basis=chw(irradiance_basis(sample["normal"], 2) * bright[..., None]),
                            shading_a=chw(shading), bright=chw(bright.astype(np.float32)),
                            shading_floor=np.full((1, 1, 1), 0.01 * max(median, 1e-6), np.float32))
         return example
@@ -216,13 +216,6 @@ class DelightTask(Task):
         return {"albedo_mse": metrics.mse(pred, true, mask), "albedo_psnr": metrics.psnr(pred, true, mask),
                 "albedo_ssim": metrics.ssim(pred, true, mask), "light_log_l2": light,
                 "ratio_albedo_psnr": metrics.psnr(protocol_encode(ratio), true, mask)}
-
-
-def irradiance_basis(normals: np.ndarray) -> np.ndarray:
-    """(H, W, 9) float32: SH-9 basis x band factor / pi at unit normals (H, W, 3), so that
-    irradiance / pi = basis @ project_sh(light, 2) (relightcli.render.sh)."""
-    factors = np.asarray(BAND_FACTORS)[[0, 1, 1, 1, 2, 2, 2, 2, 2]] / np.pi
-    return (sh_basis(normals, 2) * factors).astype(np.float32)
 
 
 def sh_projection_matrix(height: int, width: int) -> np.ndarray:

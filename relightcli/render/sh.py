@@ -163,6 +163,14 @@ def _band_of_each_coefficient(order):
     return np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
 
 
+def irradiance_basis(normals, order=2):
+    """(..., (order + 1) ** 2) float64: the SH basis at unit normals times each band's
+    irradiance factor / pi, so that sh_irradiance_shading(coeffs, normals) = basis @ coeffs
+    (linear in the lighting: what a trainer differentiates through)."""
+    factors = np.asarray(BAND_FACTORS)[_band_of_each_coefficient(order)] / np.pi
+    return sh_basis(normals, order) * factors
+
+
 def sh_irradiance_shading(coeffs, normals):
     """Diffuse shading (irradiance / pi) from SH lighting coefficients.
 
@@ -171,10 +179,7 @@ def sh_irradiance_shading(coeffs, normals):
     shading; band-limited, so it can dip below 0 for very directional light.
     """
     coeffs = np.asarray(coeffs, dtype=np.float64)
-    order = order_of(coeffs)
-    factors = np.asarray(BAND_FACTORS)[_band_of_each_coefficient(order)] / np.pi
-    basis = sh_basis(normals, order)
-    return (basis @ (factors[:, None] * coeffs)).astype(np.float32)
+    return (irradiance_basis(normals, order_of(coeffs)) @ coeffs).astype(np.float32)
 
 
 def sh_to_envmap(coeffs, height, *, clip_negative=True):
