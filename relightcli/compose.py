@@ -122,6 +122,30 @@ def ratio_albedo(image: np.ndarray, input_shading: np.ndarray, fallback: np.ndar
     return (weight * ratio + (1.0 - weight) * fallback).astype(np.float32)
 
 
+# Pixels of the person's outline whose photo colour mixes in the background (anti-aliasing,
+# blur, an imprecise mask): the ring of mask pixels within RATIO_RING px of the outside
+RATIO_RING = 1
+
+
+def anchor_albedo(ratio: np.ndarray, net_albedo: np.ndarray, mask: np.ndarray,
+                  ring: int = RATIO_RING) -> np.ndarray:
+    """The ratio albedo's detail at the net's level: each channel scaled so that its mean over
+    the person equals the net albedo's (the lighting's estimated intensity and colour are less
+    sure than the net's albedo level), clipped to [0, 1], and the net's albedo on the outline
+    ring, where the photo mixes in the background. (H, W, 3) float32 linear, mask (H, W)."""
+    inside = mask > 0.5
+    if not inside.any():
+        return np.asarray(ratio, np.float32)
+    have, want = ratio[inside].mean(axis=0), net_albedo[inside].mean(axis=0)
+    gain = np.where(have > 1e-6, want / np.maximum(have, 1e-6), 1.0)
+    out = np.clip(ratio * gain.astype(np.float32), 0.0, 1.0)
+    if ring > 0:
+        core = cv2.erode(inside.astype(np.uint8), np.ones((2 * ring + 1,) * 2, np.uint8), borderValue=0) > 0
+        outline = inside & ~core
+        out[outline] = net_albedo[outline]
+    return out.astype(np.float32)
+
+
 def display_exposure(relit: np.ndarray, mask: np.ndarray, target: float) -> float:
     """The factor that maps the 95th percentile of the person's luminance to `target`, for LDR
     outputs (an HDR environment gives radiance in arbitrary units; a PNG clips at 1). 1.0 for a

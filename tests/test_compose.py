@@ -17,6 +17,7 @@ from relightcli.compose import (
     paste_back,
     person_crop_box,
     preview_sheet,
+    anchor_albedo,
     ratio_albedo,
     relight,
 )
@@ -215,3 +216,33 @@ def test_ratio_albedo_falls_back_where_the_shading_is_dark_and_stays_finite():
     np.testing.assert_array_equal(ratio_albedo(image, np.zeros_like(image), fallback, np.ones((8, 8))), fallback)
     # Saturated photo under dim light: clipped to a physical albedo
     assert ratio_albedo(np.full_like(image, 0.9), np.full_like(image, 0.5), fallback, np.ones((8, 8))).max() == 1.0
+
+
+def test_anchor_albedo_takes_the_level_from_the_net_and_the_detail_from_the_ratio():
+    rng = np.random.default_rng(1)
+    albedo = rng.uniform(0.05, 0.6, (24, 24, 3)).astype(np.float32)
+    ratio = albedo * np.array([0.5, 0.8, 1.2], np.float32)  # the light's intensity and colour were off
+    mask = np.zeros((24, 24), np.float32)
+    mask[4:20, 4:20] = 1.0
+    inside = albedo[4:20, 4:20].reshape(-1, 3).mean(axis=0)
+    net = np.broadcast_to(inside, albedo.shape).astype(np.float32)  # flat, at the right level
+    got = anchor_albedo(ratio, net, mask, ring=0)
+    np.testing.assert_allclose(got, albedo, rtol=1e-5)
+    # The outline ring (1 px) is the net's; the core keeps the ratio's detail
+    got = anchor_albedo(ratio, net, mask, ring=1)
+    np.testing.assert_array_equal(got[4, 4:20], net[4, 4:20])
+    np.testing.assert_array_equal(got[19, 4:20], net[19, 4:20])
+    np.testing.assert_allclose(got[5:19, 5:19], albedo[5:19, 5:19], rtol=1e-5)
+
+
+def test_anchor_albedo_stays_physical_and_finite_on_extreme_inputs():
+    mask = np.ones((8, 8), np.float32)
+    net = np.full((8, 8, 3), 0.9, np.float32)
+    dim = np.full((8, 8, 3), 1e-3, np.float32)
+    dim[0, 0] = 0.5  # one bright texel: scaled x900, must clip
+    got = anchor_albedo(dim, net, mask, ring=0)
+    assert np.isfinite(got).all() and got.min() >= 0.0 and got.max() == 1.0
+    # A black ratio (nothing to scale): left black, not divided by zero
+    np.testing.assert_array_equal(anchor_albedo(np.zeros_like(net), net, mask, ring=0), 0.0)
+    # No person: unchanged
+    np.testing.assert_array_equal(anchor_albedo(dim, net, np.zeros((8, 8)), ring=1), dim)

@@ -21,7 +21,7 @@ from export.train.config import ConfigError, TrainConfig
 from export.train.losses import (angular_loss, fft_l1, gradient_l1, light_loss, masked_l1, perceptual,
                                  pyramid)
 from relightcli import metrics
-from relightcli.compose import RATIO_DARK, ratio_albedo
+from relightcli.compose import RATIO_DARK, anchor_albedo, ratio_albedo
 from relightcli.io.images import linear_to_srgb
 from relightcli.nets.refine import shading_scale
 from relightcli.render.sh import irradiance_basis, project_sh, sh_irradiance_shading
@@ -209,10 +209,12 @@ class DelightTask(Task):
         true = protocol_encode(hwc(example["albedo"]))
         with torch.no_grad():
             light = float(light_loss(torch.from_numpy(out["light"][None]), torch.from_numpy(example["light"][None])))
-        # The runtime's default albedo: the photo over the SH-9 shading of the predicted light
+        # The runtime's default albedo: the photo over the SH-9 shading of the predicted light,
+        # anchored to the net's albedo level and outline
         normal = hwc(example["normal"])
         shading = sh_irradiance_shading(project_sh(hwc(out["light"]), 2), normal)
-        ratio = ratio_albedo(hwc(example["image"]), shading, hwc(out["albedo"]), mask)
+        ratio = anchor_albedo(ratio_albedo(hwc(example["image"]), shading, hwc(out["albedo"]), mask),
+                              hwc(out["albedo"]), mask)
         return {"albedo_mse": metrics.mse(pred, true, mask), "albedo_psnr": metrics.psnr(pred, true, mask),
                 "albedo_ssim": metrics.ssim(pred, true, mask), "light_log_l2": light,
                 "ratio_albedo_psnr": metrics.psnr(protocol_encode(ratio), true, mask)}
