@@ -4,9 +4,13 @@ trains on the shading it will refine: `python -m export.factory.coarse DATA [--s
 Per sample, with the shipped nets (relightcli.stages, the true person mask, the whole sample
 as the working crop): geometry net -> reconstruction + smoothing -> ray-traced coarse shading
 under lighting B at the runtime's default sampling effort ("coarse_shading_b", the same units
-and exposure as "shading_b"), and the AO net's map ("ao_pred"). The models' sha256 go into the
+and exposure as "shading_b"), the AO net's map ("ao_pred") and the geometry net's normals
+("normal_pred", what the runtime feeds the de-lighting net). The models' sha256 go into the
 sample's metadata ("coarse"); a sample whose record matches the current models is skipped, so
 the command resumes, and re-running after new nets ship redoes everything.
+
+`--normals-only` adds just "normal_pred" (the geometry net alone, no ray tracing; recorded
+as "normals" in the metadata).
 """
 
 from __future__ import annotations
@@ -24,34 +28,56 @@ from relightcli.errors import RelightError
 from . import dataset
 from .eval_scenes import target_environment
 
-MODELS_USED = ("geometry", "ao")
+# product (metadata key) -> the models it is made with
+MODELS_USED = {"coarse": ("geometry", "ao"), "normals": ("geometry",)}
 
 
-def models_record() -> dict:
-    """{"geometry": sha256, "ao": sha256} of the models the runtime would load now."""
+def models_record(product: str = "coarse") -> dict:
+    """{model name: sha256} of the models the runtime would load now, for one product."""
     from relightcli.nets.manifest import load_manifest
 
     manifest = load_manifest()
-    return {name: manifest[name].sha256 for name in MODELS_USED}
+    return {name: manifest[name].sha256 for name in MODELS_USED[product]}
 
 
-def coarse_arrays(sample: dict, meta: dict, models, *, seed: int = 0) -> tuple[dict, dict]:
-    """({"coarse_shading_b", "ao_pred"}, statistics) of one loaded sample."""
+def working_frame(sample: dict, meta: dict):
+    """(Frame, RelightOptions) of a sample as the runtime's stages see it: the true person
+    mask, the whole sample as the working crop."""
     from relightcli import compose
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import Frame, stage_ao, stage_geometry, stage_raytrace, stage_reconstruct
+    from relightcli.stages import Frame
 
     size = sample["input"].shape[0]
-    options = RelightOptions(resolution=size, seed=seed, threads=1)
+    options = RelightOptions(resolution=size, seed=0, threads=1)
     env = target_environment(meta, meta.get("settings", {}).get("hdri_folder"))
     frame = Frame(image=sample["input"], mask=sample["mask"], env=env)
     frame.box = compose.CropBox(0, 0, size, size)
     frame.crop, frame.crop_mask = sample["input"], np.clip(sample["mask"], 0.0, 1.0)
+    return frame, options
+
+
+def coarse_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
+    """({"coarse_shading_b", "ao_pred", "normal_pred"}, statistics) of one loaded sample."""
+    from relightcli.stages import stage_ao, stage_geometry, stage_raytrace, stage_reconstruct
+
+    frame, options = working_frame(sample, meta)
     for stage in (stage_geometry, stage_ao, stage_reconstruct, stage_raytrace):
         stage(frame, options, models)
     frame.scene.close()
-    return ({"coarse_shading_b": frame.coarse_shading, "ao_pred": frame.ao},
+    return ({"coarse_shading_b": frame.coarse_shading, "ao_pred": frame.ao, "normal_pred": frame.normal},
             {key: frame.notes["raytrace"][key] for key in ("spp_mean", "rel_error", "seconds")})
+
+
+def normal_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
+    """({"normal_pred"}, {}) of one loaded sample: the geometry net's normals, zero outside."""
+    from relightcli.stages import stage_geometry
+
+    frame, options = working_frame(sample, meta)
+    stage_geometry(frame, options, models)
+    return {"normal_pred": frame.normal}, {}
+
+
+PRODUCTS = {"coarse": coarse_arrays, "normals": normal_arrays}
 
 
 _MODELS = None
@@ -65,33 +91,34 @@ def _worker_init():
     _MODELS = Models(threads=1)
 
 
-def _one(root: str, split: str, sample_id: str, record: dict) -> str:
+def _one(root: str, split: str, sample_id: str, record: dict, product: str) -> str:
     data = dataset.open_dataset(root)
-    arrays, stats = coarse_arrays(data.load(split, sample_id), data.meta(split, sample_id), _MODELS)
-    dataset.add_arrays(root, split, sample_id, arrays, {"coarse": dict(record, **stats)})
+    arrays, stats = PRODUCTS[product](data.load(split, sample_id), data.meta(split, sample_id), _MODELS)
+    dataset.add_arrays(root, split, sample_id, arrays, {product: dict(record, **stats)})
     return sample_id
 
 
-def pending(root, splits, record: dict) -> list[tuple[str, str]]:
-    """(split, id) of the samples without coarse arrays from the current models."""
+def pending(root, splits, record: dict, product: str = "coarse") -> list[tuple[str, str]]:
+    """(split, id) of the samples without the product's arrays from the current models."""
     data = dataset.open_dataset(root)
     todo = []
     for split in splits:
         for sample_id in data.ids(split):
-            done = data.meta(split, sample_id).get("coarse", {})
+            done = data.meta(split, sample_id).get(product, {})
             if any(done.get(name) != sha for name, sha in record.items()):
                 todo.append((split, sample_id))
     return todo
 
 
-def run(root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None) -> int:
-    """Add the coarse arrays to every pending sample; returns how many were written."""
-    record = models_record()
-    todo = pending(root, splits, record)[:limit]
+def run(root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None, product: str = "coarse") -> int:
+    """Add the product's arrays ("coarse": all, "normals": normal_pred only) to every pending
+    sample; returns how many were written."""
+    record = models_record(product)
+    todo = pending(root, splits, record, product)[:limit]
     print(f"{len(todo)} samples to do", file=sys.stderr)
     start, done = time.perf_counter(), 0
     with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
-        futures = [pool.submit(_one, str(root), split, sample_id, record) for split, sample_id in todo]
+        futures = [pool.submit(_one, str(root), split, sample_id, record, product) for split, sample_id in todo]
         for future in as_completed(futures):
             future.result()
             done += 1
@@ -107,9 +134,12 @@ def main(argv=None) -> int:
     parser.add_argument("--splits", default=",".join(dataset.SPLITS), help="comma-separated (default: all)")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--limit", type=int, default=None, help="at most this many samples (a trial)")
+    parser.add_argument("--normals-only", action="store_true",
+                        help="add only normal_pred, the geometry net's normals (no ray tracing)")
     args = parser.parse_args(argv)
     try:
-        run(args.data, [s for s in args.splits.split(",") if s], args.workers, args.limit)
+        run(args.data, [s for s in args.splits.split(",") if s], args.workers, args.limit,
+            "normals" if args.normals_only else "coarse")
     except RelightError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code

@@ -67,6 +67,7 @@ class TrainConfig:
     coarse_shading: str = "standin"   # "standin" (degraded shading_b) or a dataset key
     shading_key: str = "shading_b"    # the target shading of the refinement nets
     ao_key: str = "ao"                # the body refinement's AO input: "ao" (truth) or "ao_pred" (the AO net's)
+    normal_key: str = "normal"        # the de-lighting net's normal input: "normal" (truth) or "normal_pred"
     face_crop_size: int = 128         # the face net trains on crops resampled to this size
     face_margin: float = 1.2          # square face crop side = margin * max(face box side)
     export_size: int = 256            # trace size for the ONNX export (axes stay dynamic)

@@ -157,7 +157,8 @@ class AOTask(Task):
 class DelightTask(Task):
     """[image, normal] -> albedo, light. Loss (paper): 500 L1 + 100 perceptual on the albedo
     over the person, 0.025 solid-angle-weighted log-L2 on the 16x32 light. The normal input
-    is the ground truth during training (the runtime feeds the geometry net's).
+    is config `normal_key`: the ground truth (the paper), or "normal_pred", the geometry net's
+    normals as the runtime feeds them (export.factory.coarse --normals-only).
 
     Ours, optional (loss weight "irradiance"): log-L1 between the SH-9 irradiance of the
     predicted light at the true normals and the true input shading, where that shading is not
@@ -171,13 +172,17 @@ class DelightTask(Task):
         self._projection = None
 
     def example(self, sample, rng):
-        example = {"image": chw(sample["input"]), "normal": chw(sample["normal"]), "albedo": chw(sample["albedo"]),
-                   "light": chw(sample["light_a"]), "mask": chw(sample["mask"])}
+        if self.config.normal_key not in sample:
+            raise ConfigError(f"config normal_key={self.config.normal_key!r} but the dataset samples have no such "
+                              "array; use \"normal\" or add it with python -m export.factory.coarse --normals-only")
+        example = {"image": chw(sample["input"]), "normal": chw(sample[self.config.normal_key]),
+                   "albedo": chw(sample["albedo"]), "light": chw(sample["light_a"]), "mask": chw(sample["mask"])}
         if self.w.get("irradiance"):
             shading, mask = sample["shading_a"], sample["mask"] > 0.5
             level = shading.mean(axis=-1)
             median = float(np.median(level[mask])) if mask.any() else 0.0
             bright = mask & (level > RATIO_DARK * median)
+            # at the true normals: the true shading is theirs, whatever the net is fed
             example.update(irradiance_basis=chw(irradiance_basis(sample["normal"], 2) * bright[..., None]),
                            shading_a=chw(shading), bright=chw(bright.astype(np.float32)),
                            shading_floor=np.full((1, 1, 1), 0.01 * max(median, 1e-6), np.float32))

@@ -79,6 +79,7 @@ def test_coarse_shading_of_the_true_geometry_matches_the_rendered_shading(tiny):
         assert 0.9 < ratio < 1.1, (sample_id, ratio)
         assert np.all(got[~inside] == 0)
         assert np.array_equal(arrays["ao_pred"], sample["ao"]) and stats["spp_mean"] > 0
+        np.testing.assert_array_equal(arrays["normal_pred"], sample["normal"] * inside[..., None])
 
 
 def test_coarse_run_adds_arrays_once_per_model_set(copy):
@@ -89,6 +90,19 @@ def test_coarse_run_adds_arrays_once_per_model_set(copy):
         assert sample["coarse_shading_b"].shape == (RES, RES, 3) and sample["ao_pred"].shape == (RES, RES)
         assert data.meta("val", sample_id)["coarse"]["geometry"] == coarse.models_record()["geometry"]
     assert coarse.run(copy, ["val"], workers=1) == 0  # resumed: nothing left to do
+
+
+def test_normals_only_adds_the_geometry_nets_normals_without_ray_tracing(copy):
+    assert coarse.run(copy, ["val"], workers=1, product="normals") == 2
+    data = dataset.open_dataset(copy)
+    for sample_id in data.ids("val"):
+        sample, meta = data.load("val", sample_id), data.meta("val", sample_id)
+        assert "coarse_shading_b" not in sample and "coarse" not in meta
+        normal, inside = sample["normal_pred"], sample["mask"] > 0.5
+        np.testing.assert_allclose(np.linalg.norm(normal[inside], axis=-1), 1.0, atol=2e-3)
+        assert np.all(normal[~inside] == 0)
+        assert meta["normals"] == coarse.models_record("normals")
+    assert coarse.run(copy, ["val"], workers=1, product="normals") == 0
 
 
 def test_closeup_square_is_the_runtime_face_crop_in_world_units():

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from export.train.config import TrainConfig
+from export.train.config import ConfigError, TrainConfig
 from export.train.data import sample_rng
 from export.train.fake_data import FakeDataset
 from export.train.tasks import hwc, protocol_encode
@@ -213,3 +213,34 @@ def test_delight_irradiance_loss_is_the_runtime_sh9_shading_of_the_predicted_lig
     terms = trainer.train_step(trainer.next_batch())
     assert np.isfinite(terms["irradiance"]) and terms["irradiance"] > 0
     assert "ratio_albedo_psnr" in trainer.validate("val")
+
+
+class WithPredictedNormals:
+    """A dataset whose samples also hold "normal_pred": the true normals, mirrored in x."""
+
+    def __init__(self, data):
+        self.data, self.card, self.split_names = data, data.card, data.split_names
+
+    def ids(self, split):
+        return self.data.ids(split)
+
+    def load(self, split, sample_id):
+        sample = self.data.load(split, sample_id)
+        sample["normal_pred"] = sample["normal"] * np.array([-1, 1, 1], np.float32)
+        return sample
+
+
+def test_delight_can_be_fed_the_predicted_normals_and_keeps_the_true_ones_for_its_irradiance(tmp_path, dataset):
+    loss = {"l1": 500.0, "perceptual": 100.0, "light": 0.025, "irradiance": 10.0}
+    config = small_config("delight", loss=loss, normal_key="normal_pred")
+    with pytest.raises(ConfigError, match="normal_pred"):
+        Trainer(config, dataset, tmp_path / "missing").task.example(dataset.load("val", "val_0000"), np.random.default_rng(0))
+    data = WithPredictedNormals(dataset)
+    trainer = Trainer(config, data, tmp_path / "pred")
+    sample = data.load("val", "val_0000")
+    example = trainer.task.example(sample, np.random.default_rng(0))
+    np.testing.assert_array_equal(hwc(example["normal"]), sample["normal_pred"])
+    truth = Trainer(small_config("delight", loss=loss), dataset, tmp_path / "true").task.example(
+        dataset.load("val", "val_0000"), np.random.default_rng(0))
+    np.testing.assert_array_equal(example["irradiance_basis"], truth["irradiance_basis"])
+    assert np.isfinite(trainer.train_step(trainer.next_batch())["loss"])
