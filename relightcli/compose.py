@@ -53,6 +53,41 @@ def person_crop_box(mask: np.ndarray, resolution: int, margin: float = 0.08, pat
     return CropBox(int(round(cx - size / 2.0)), int(round(cy - size / 2.0)), size, resolution)
 
 
+# GrabCut (Rother et al. 2004) from the mask net's mask: the mask eroded by MASK_SURE_IN x the
+# crop side is surely the person, the rest of the mask probably, everything else probably not
+# (the net misses whole limbs: on the 20 validation scenes a sure background beyond a band
+# around the mask scored lower the narrower the band); colour models of the person and the
+# background relabel the probable pixels in MASK_ITERATIONS rounds
+MASK_SURE_IN, MASK_ITERATIONS = 15 / 512, 2
+
+
+def refine_mask(crop: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+    """The person's mask in a crop, snapped to the photo's edges: (R, R) float32 of 0 and 1
+    from crop (R, R, 3) float32 linear and the net's mask (R, R) in [0, 1]. None when the
+    net's mask has no sure inside or no outside (no colour model to learn)."""
+    side = mask.shape[0]
+    person = (mask > 0.5).astype(np.uint8)
+    sure_in = cv2.erode(person, np.ones((int(MASK_SURE_IN * side) | 1,) * 2, np.uint8), borderValue=0) > 0
+    if not sure_in.any() or person.all():
+        return None
+    labels = np.where(person > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
+    labels[sure_in] = cv2.GC_FGD
+    pixels = np.round(linear_to_srgb(np.clip(np.nan_to_num(crop), 0.0, 1.0)) * 255).astype(np.uint8)
+    cv2.grabCut(pixels, labels, None, np.zeros((1, 65)), np.zeros((1, 65)), MASK_ITERATIONS, cv2.GC_INIT_WITH_MASK)
+    return np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
+
+
+def replace_in_box(full: np.ndarray, crop: np.ndarray, box: CropBox) -> np.ndarray:
+    """`full` (H, W[, C]) with the box's part replaced by the (R, R[, C]) crop pasted back
+    (bilinear); in place, returned."""
+    height, width = full.shape[:2]
+    ys, xs = _overlap(box.y0, box.size, height), _overlap(box.x0, box.size, width)
+    if ys and xs:
+        band = paste_back(crop, box, height, width, slice(*ys))
+        full[ys[0]:ys[1], xs[0]:xs[1]] = band[:, xs[0]:xs[1]]
+    return full
+
+
 def crop_square(image: np.ndarray, box: CropBox) -> np.ndarray:
     """(H, W[, C]) float32 full frame -> (R, R[, C]) crop, zero outside the photo; area
     averaging when shrinking, bilinear when enlarging."""

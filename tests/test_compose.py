@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import tracemalloc
 
+import cv2
 import numpy as np
 import pytest
 
@@ -16,10 +17,12 @@ from relightcli.compose import (
     parse_colour,
     paste_back,
     person_crop_box,
-    preview_sheet,
     anchor_albedo,
+    preview_sheet,
     ratio_albedo,
+    refine_mask,
     relight,
+    replace_in_box,
 )
 from relightcli.errors import InputError
 from relightcli.io.images import BAND_ROWS
@@ -246,3 +249,46 @@ def test_anchor_albedo_stays_physical_and_finite_on_extreme_inputs():
     np.testing.assert_array_equal(anchor_albedo(np.zeros_like(net), net, mask, ring=0), 0.0)
     # No person: unchanged
     np.testing.assert_array_equal(anchor_albedo(dim, net, np.zeros((8, 8)), ring=1), dim)
+
+
+def disc_scene(side=512, radius=160.0):
+    """A red disc (the person) on a green, noisy background, and the disc's true mask."""
+    y, x = np.mgrid[:side, :side] + 0.5
+    truth = ((x - side / 2) ** 2 + (y - side / 2) ** 2 <= radius**2).astype(np.float32)
+    rng = np.random.default_rng(0)
+    crop = np.where(truth[..., None] > 0, [0.6, 0.05, 0.05], [0.05, 0.4, 0.1]).astype(np.float32)
+    crop = np.clip(crop + rng.normal(0, 0.02, crop.shape), 0, 1).astype(np.float32)
+    return crop, truth
+
+
+def iou(a, b):
+    return np.logical_and(a > 0.5, b > 0.5).sum() / np.logical_or(a > 0.5, b > 0.5).sum()
+
+
+def test_refine_mask_snaps_a_misplaced_net_mask_to_the_photos_edge():
+    crop, truth = disc_scene(radius=60.0)
+    # The net's mask at a 512 crop: 3 px off to the right and 2 px swollen (the sure inside is
+    # the mask eroded by 4 px, so it stays inside the disc)
+    net = cv2.dilate(np.roll(truth, 3, axis=1), np.ones((5, 5), np.uint8))
+    got = refine_mask(crop, net)
+    assert got.shape == truth.shape and set(np.unique(got)) <= {0.0, 1.0}
+    assert iou(net, truth) < 0.92 and iou(got, truth) > 0.99
+
+
+def test_refine_mask_declines_without_a_sure_inside_or_outside_and_survives_nan_texels():
+    crop, truth = disc_scene()
+    assert refine_mask(crop, np.zeros_like(truth)) is None
+    assert refine_mask(crop, np.ones_like(truth)) is None  # nothing is surely background
+    crop[10:20, 10:20] = np.nan
+    crop[250:252, 250:252] = np.inf
+    got = refine_mask(crop, truth)
+    assert np.isfinite(got).all() and iou(got, truth) > 0.99
+
+
+def test_replace_in_box_changes_only_the_box_even_where_it_leaves_the_photo():
+    full = np.full((40, 50), 0.25, np.float32)
+    box = CropBox(x0=-10, y0=20, size=30, resolution=15)  # its left third and bottom lie outside
+    replace_in_box(full, np.ones((15, 15), np.float32), box)
+    np.testing.assert_array_equal(full[20:40, 0:20], 1.0)
+    np.testing.assert_array_equal(full[:20], 0.25)
+    np.testing.assert_array_equal(full[:, 20:], 0.25)

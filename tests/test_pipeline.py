@@ -153,6 +153,21 @@ def test_mask_net_runs_only_without_alpha():
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
 
 
+def test_the_mask_nets_mask_is_snapped_to_the_photos_edges():
+    # A red person on a green background; the stand-in net's mask (a disc of radius 54 px in
+    # the frame) misses a 2-px ring of them: GrabCut in the person's crop finds the ring
+    height, width = 180, 140
+    y, x = np.mgrid[:height, :width] + 0.5
+    net_disc = (x + 20 - 90) ** 2 + (y - 90) ** 2 < 54**2  # the letterbox square starts at x = -20
+    person = (x + 20 - 90) ** 2 + (y - 90) ** 2 < 56**2
+    image = np.where(person[..., None], [0.6, 0.05, 0.05], [0.05, 0.4, 0.1]).astype(np.float32)
+    options = RelightOptions(outputs=("mask",), method="sh9", resolution=512)
+    frame, _ = run_stages(image, None, np.ones((8, 16, 3), np.float32), options, ItemReport("x"), StandInModels())
+    assert frame.notes["mask"] == {"source": "mask net", "refined": "grabcut"}
+    iou = lambda a: np.logical_and(a, person).sum() / np.logical_or(a, person).sum()  # noqa: E731
+    assert iou(net_disc) < 0.94 and iou(frame.mask > 0.5) > 0.97
+
+
 class SphereModels(StandInModels):
     """Stand-in geometry of a ball filling the crop: exact front/back depth and normals."""
 
