@@ -54,11 +54,12 @@ def person_crop_box(mask: np.ndarray, resolution: int, margin: float = 0.08, pat
 
 
 # GrabCut (Rother et al. 2004) from the mask net's mask: the mask eroded by MASK_SURE_IN x the
-# crop side is surely the person, the rest of the mask probably, everything else probably not
-# (the net misses whole limbs: on the 20 validation scenes a sure background beyond a band
-# around the mask scored lower the narrower the band); colour models of the person and the
-# background relabel the probable pixels in MASK_ITERATIONS rounds
-MASK_SURE_IN, MASK_ITERATIONS = 15 / 512, 2
+# crop side is surely the person, the rest of the mask probably, a band MASK_SURE_OUT x the side
+# wide around it probably not, everything beyond surely not; colour models of the person and
+# the background relabel the probable pixels in MASK_ITERATIONS rounds. The band: on the 20
+# synthetic validation scenes the wider the better (the net misses whole limbs), but on real
+# photos (../shared/data/photos) bands past ~40 px at 512 swallow grass and moon dust
+MASK_SURE_IN, MASK_SURE_OUT, MASK_ITERATIONS = 11 / 512, 41 / 512, 2
 
 
 def refine_mask(crop: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
@@ -70,8 +71,9 @@ def refine_mask(crop: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     sure_in = cv2.erode(person, np.ones((int(MASK_SURE_IN * side) | 1,) * 2, np.uint8), borderValue=0) > 0
     if not sure_in.any() or person.all():
         return None
+    maybe = cv2.dilate(person, np.ones((int(MASK_SURE_OUT * side) | 1,) * 2, np.uint8)) > 0
     labels = np.where(person > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
-    labels[sure_in] = cv2.GC_FGD
+    labels[sure_in], labels[~maybe] = cv2.GC_FGD, cv2.GC_BGD
     pixels = np.round(linear_to_srgb(np.clip(np.nan_to_num(crop), 0.0, 1.0)) * 255).astype(np.uint8)
     cv2.grabCut(pixels, labels, None, np.zeros((1, 65)), np.zeros((1, 65)), MASK_ITERATIONS, cv2.GC_INIT_WITH_MASK)
     return np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
