@@ -30,7 +30,7 @@ HDR = REPO / "examples" / "noon_grass.hdr"
 
 
 def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
-                photo=EXAMPLE, mask_path=MASK, hdr=HDR) -> dict:
+                photo=EXAMPLE, mask_path=MASK, hdr=HDR, predict_mask: bool = False) -> dict:
     from relightcli.batch import ItemReport
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
@@ -38,7 +38,7 @@ def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
     from relightcli.stages import Models
 
     image = read_image(photo)
-    mask = read_image(mask_path, srgb=False).rgb[..., 0]
+    mask = None if predict_mask else read_image(mask_path, srgb=False).rgb[..., 0]
     env = load_envmap(hdr)
     options = RelightOptions(outputs=("relit",), resolution=resolution, threads=threads, spp=spp,
                              target_error=target_error)
@@ -112,13 +112,15 @@ def main() -> None:
     parser.add_argument("--scene", type=Path, default=None,
                         help="an eval scene folder (input.png, gt_mask.png, target.hdr) instead of the example, "
                              "e.g. one with a face to time the face path")
+    parser.add_argument("--predict-mask", action="store_true",
+                        help="leave the mask out: time the mask net and its edge snapping too")
     args = parser.parse_args()
     from relightcli.layers import DEFAULT_RESOLUTION
 
     resolution = args.resolution or DEFAULT_RESOLUTION
     result = {"resolution": resolution, "threads": args.threads, "cpu": os.cpu_count(),
               "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error,
-                                            *scene_files(args.scene))}
+                                            *scene_files(args.scene), predict_mask=args.predict_mask)}
     if args.memory:
         result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp)
     print(f"median over {args.runs} runs, {resolution}x{resolution} crop, {args.threads} threads")
@@ -126,7 +128,7 @@ def main() -> None:
         print(f"  {stage:<22} {seconds:8.3f}")
     if "memory" in result:
         print(f"24 MP photo: peak RSS {result['memory']['peak_rss_mb']:.0f} MB, {result['memory']['seconds']:.1f} s")
-    suffix = f"_{args.scene.name}" if args.scene else ""
+    suffix = (f"_{args.scene.name}" if args.scene else "") + ("_predicted_mask" if args.predict_mask else "")
     out = REPO / "bench" / "results" / f"pipeline_{resolution}{suffix}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")
