@@ -58,7 +58,7 @@ def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
     return {key: float(np.median([row[key] for row in rows])) for key in keys}
 
 
-def peak_memory_24mp(resolution: int, threads: int, spp) -> dict:
+def peak_memory_24mp(resolution: int, threads: int, spp, predict_mask: bool = False) -> dict:
     """Relight the example upscaled to 6000x4000 in a child process; its peak RSS."""
     import cv2
 
@@ -70,8 +70,8 @@ def peak_memory_24mp(resolution: int, threads: int, spp) -> dict:
         mask = cv2.resize(read_image(MASK, srgb=False).rgb[..., 0], (6000, 4000), interpolation=cv2.INTER_NEAREST)
         write_image(folder / "big.jpg", photo, quality=92)
         write_image(folder / "big_mask.png", mask, bits=8, srgb=False)
-        command = [sys.executable, "-m", "relightcli", str(folder / "big.jpg"), "--mask", str(folder / "big_mask.png"),
-                   "--hdr", str(HDR), "-o", str(folder / "out.png"), "--resolution", str(resolution),
+        given_mask = [] if predict_mask else ["--mask", str(folder / "big_mask.png")]
+        command = [sys.executable, "-m", "relightcli", str(folder / "big.jpg"), *given_mask, "--hdr", str(HDR), "-o", str(folder / "out.png"), "--resolution", str(resolution),
                    "--threads", str(threads), "--json"] + (["--spp", str(spp)] if spp else [])
         start = time.perf_counter()
         done = subprocess.run(_peak_reporter(folder / "peak_kib") + command, capture_output=True, text=True, cwd=REPO,
@@ -122,7 +122,7 @@ def main() -> None:
               "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error,
                                             *scene_files(args.scene), predict_mask=args.predict_mask)}
     if args.memory:
-        result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp)
+        result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp, args.predict_mask)
     print(f"median over {args.runs} runs, {resolution}x{resolution} crop, {args.threads} threads")
     for stage, seconds in result["median_seconds"].items():
         print(f"  {stage:<22} {seconds:8.3f}")
