@@ -7,6 +7,8 @@ ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
 COPY pyproject.toml README.md requirements.lock ./
 COPY relightcli ./relightcli
+# The models go into the wheel as package data (relightcli/models in site-packages)
+COPY models ./models
 RUN python -m venv /opt/venv \
  && /opt/venv/bin/pip install --no-compile -c requirements.lock . \
  && /opt/venv/bin/python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)"
@@ -15,9 +17,7 @@ FROM python:3.11-slim-bookworm AS runtime
 # No Debian packages beyond the base image: every wheel we install loads only libc, libstdc++,
 # libgcc and zlib from the system (tests/test_runtime_env.py checks this with ldd + dpkg).
 COPY --from=build /opt/venv /opt/venv
-COPY models /opt/relightcli/models
 ENV PATH=/opt/venv/bin:$PATH \
-    RELIGHT_MODELS_DIR=/opt/relightcli/models \
     PYTHONDONTWRITEBYTECODE=1
 RUN useradd --create-home --uid 10001 relight \
  && relight --version && relight info

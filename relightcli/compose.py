@@ -60,12 +60,18 @@ def person_crop_box(mask: np.ndarray, resolution: int, margin: float = 0.08, pat
 # synthetic validation scenes the wider the better (the net misses whole limbs), but on real
 # photos (../shared/data/photos) bands past ~40 px at 512 swallow grass and moon dust
 MASK_SURE_IN, MASK_SURE_OUT, MASK_ITERATIONS = 11 / 512, 41 / 512, 2
+# The random stream GrabCut draws from, apart from the integrator's (render/integrator.py)
+GRABCUT_STREAM = 101
 
 
-def refine_mask(crop: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+def refine_mask(crop: np.ndarray, mask: np.ndarray, seed: int = 0) -> np.ndarray | None:
     """The person's mask in a crop, snapped to the photo's edges: (R, R) float32 of 0 and 1
     from crop (R, R, 3) float32 linear and the net's mask (R, R) in [0, 1]. None when the
-    net's mask has no sure inside or no outside (no colour model to learn)."""
+    net's mask has no sure inside or no outside (no colour model to learn).
+
+    GrabCut's colour models start from k-means on OpenCV's random generator (one per thread,
+    never reset between calls): it is seeded from `seed` here, so the answer depends on the
+    inputs and the seed only, not on what the thread ran before."""
     side = mask.shape[0]
     person = (mask > 0.5).astype(np.uint8)
     sure_in = cv2.erode(person, np.ones((int(MASK_SURE_IN * side) | 1,) * 2, np.uint8), borderValue=0) > 0
@@ -75,6 +81,7 @@ def refine_mask(crop: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     labels = np.where(person > 0, cv2.GC_PR_FGD, cv2.GC_PR_BGD).astype(np.uint8)
     labels[sure_in], labels[~maybe] = cv2.GC_FGD, cv2.GC_BGD
     pixels = np.round(linear_to_srgb(np.clip(np.nan_to_num(crop), 0.0, 1.0)) * 255).astype(np.uint8)
+    cv2.setRNGSeed(int(np.random.SeedSequence([seed, GRABCUT_STREAM]).generate_state(1)[0] >> 1))
     cv2.grabCut(pixels, labels, None, np.zeros((1, 65)), np.zeros((1, 65)), MASK_ITERATIONS, cv2.GC_INIT_WITH_MASK)
     return np.isin(labels, (cv2.GC_FGD, cv2.GC_PR_FGD)).astype(np.float32)
 

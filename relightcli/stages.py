@@ -99,7 +99,8 @@ def stage_mask(frame: Frame, options, models: Models) -> None:
     frame.mask = np.clip(compose.paste_back(maps.mask, box, height, width), 0.0, 1.0)
     frame.notes["mask"] = {"source": "mask net"}
     box = compose.person_crop_box(frame.mask, options.resolution)
-    refined = compose.refine_mask(compose.crop_square(frame.image, box), compose.crop_square(frame.mask, box))
+    refined = compose.refine_mask(compose.crop_square(frame.image, box), compose.crop_square(frame.mask, box),
+                                  seed=options.seed)
     if refined is None:
         frame.notes["mask"]["refined"] = "no: the net's mask has no sure inside or outside"
         return

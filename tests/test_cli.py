@@ -290,6 +290,22 @@ def test_info_json(capsys):
     assert report["version"] == __version__
 
 
+def test_info_exits_3_naming_a_missing_or_corrupt_model(tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from relightcli.nets.manifest import models_dir
+
+    shutil.copy(models_dir() / "manifest.json", tmp_path / "manifest.json")
+    entries = json.loads((tmp_path / "manifest.json").read_text())["models"]
+    corrupt, *_ = sorted(entries)
+    (tmp_path / entries[corrupt]["file"]).write_bytes(b"not the model")
+    monkeypatch.setenv("RELIGHT_MODELS_DIR", str(tmp_path))
+    code, report = run_json(capsys, ["info"])
+    assert code == 3
+    assert [m["name"] for m in report["models"] if m["present"]] == [corrupt]
+    assert not report["models"][0]["sha256_ok"]
+
+
 def test_one_pixel_image_exits_4(tmp_path, env_path, capsys):
     tiny = tmp_path / "tiny.png"
     write_image(tiny, np.ones((1, 1, 3), np.float32), np.ones((1, 1), np.float32))

@@ -285,6 +285,20 @@ def test_refine_mask_declines_without_a_sure_inside_or_outside_and_survives_nan_
     assert np.isfinite(got).all() and iou(got, truth) > 0.99
 
 
+def test_refine_mask_depends_on_its_inputs_and_seed_only():
+    """GrabCut draws from OpenCV's per-thread random generator: what ran before on the thread
+    (another photo's GrabCut) must not change this photo's mask."""
+    rng = np.random.default_rng(3)
+    crop = rng.uniform(0.0, 1.0, (128, 128, 3)).astype(np.float32)  # colours GrabCut cannot split cleanly
+    net = np.zeros((128, 128), np.float32)
+    net[24:104, 40:88] = 1.0
+    first = refine_mask(crop, net)
+    refine_mask(rng.uniform(0.0, 1.0, (128, 128, 3)).astype(np.float32), net)
+    cv2.randu(np.empty((64, 64), np.float32), 0.0, 1.0)  # anything else drawing on the thread
+    np.testing.assert_array_equal(refine_mask(crop, net), first)
+    assert not np.array_equal(refine_mask(crop, net, seed=1), first)  # the seed does reach it
+
+
 def test_replace_in_box_changes_only_the_box_even_where_it_leaves_the_photo():
     full = np.full((40, 50), 0.25, np.float32)
     box = CropBox(x0=-10, y0=20, size=30, resolution=15)  # its left third and bottom lie outside

@@ -4,7 +4,9 @@ The Dockerfile is checked by construction, since no Docker engine runs here."""
 
 from __future__ import annotations
 
+import json
 import os
+import pkgutil
 import re
 import shutil
 import subprocess
@@ -32,7 +34,8 @@ print(len(names), 'modules', 'torch' if torch else 'no-torch')
 
 @pytest.fixture(scope="module")
 def runtime_venv(tmp_path_factory):
-    """A venv with `pip install -c requirements.lock .` and nothing else (no system packages)."""
+    """A fresh venv holding the relightcli wheel built from this checkout, installed with
+    `pip install -c requirements.lock WHEEL` and nothing else (no system packages, no torch)."""
     if shutil.which("pip") is None and not (Path(sys.executable).parent / "pip").exists():
         pytest.skip("pip is not available")
     root = tmp_path_factory.mktemp("runtime")
@@ -40,20 +43,27 @@ def runtime_venv(tmp_path_factory):
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     python = venv / "bin" / "python"
     src = root / "src"  # a copy, so the build leaves nothing in the checkout
-    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".git", ".venv*", "*.egg-info", "build", "__pycache__", "models", "examples", "bench", "export"))
-    result = subprocess.run(
-        [str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
-         "-c", str(src / "requirements.lock"), str(src)],
-        capture_output=True, text=True, timeout=900)
-    if result.returncode != 0:
-        pytest.fail(f"runtime install failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
+        ".git", ".venv*", "*.egg-info", "build", "dist", "__pycache__", "examples", "bench", "export", "tests"))
+    pip = [str(python), "-m", "pip", "--disable-pip-version-check", "--quiet"]
+    _run_or_fail(pip + ["wheel", "--no-deps", "-w", str(root / "dist"), str(src)])
+    wheel = next((root / "dist").glob("relightcli-*.whl"))
+    _run_or_fail(pip + ["install", "-c", str(src / "requirements.lock"), str(wheel)])
+    shutil.rmtree(src)  # nothing of the checkout is left to find the models in
     return venv
 
 
-def run_in(venv: Path, *args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
-    env["RELIGHT_MODELS_DIR"] = str(REPO / "models")
-    return subprocess.run(list(args), capture_output=True, text=True, cwd=cwd or venv, env=env, timeout=300)
+def _run_or_fail(command: list[str]) -> None:
+    result = subprocess.run(command, capture_output=True, text=True, timeout=900)
+    if result.returncode != 0:
+        pytest.fail(f"{' '.join(command)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
+
+
+def run_in(venv: Path, *args: str, cwd: Path | None = None, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run a command of the venv with no RELIGHT_MODELS_DIR (unless `env` sets it)."""
+    clean = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "RELIGHT_MODELS_DIR")}
+    return subprocess.run(list(args), capture_output=True, text=True, cwd=cwd or venv,
+                          env={**clean, **(env or {})}, timeout=300)
 
 
 def test_runtime_venv_has_no_torch(runtime_venv):
@@ -62,21 +72,51 @@ def test_runtime_venv_has_no_torch(runtime_venv):
     assert out.stdout.strip() == "True", out.stderr
 
 
-def test_runtime_venv_relight_help_and_info(runtime_venv):
-    relight = str(runtime_venv / "bin" / "relight")
-    help_out = run_in(runtime_venv, relight, "--help")
+def test_runtime_venv_relight_help(runtime_venv):
+    help_out = run_in(runtime_venv, str(runtime_venv / "bin" / "relight"), "--help")
     assert help_out.returncode == 0, help_out.stderr
     assert "--hdr" in help_out.stdout
-    info = run_in(runtime_venv, relight, "info", "--json")
+
+
+def test_installed_wheel_carries_its_models_checked_by_sha256(runtime_venv, tmp_path):
+    info = run_in(runtime_venv, str(runtime_venv / "bin" / "relight"), "info", "--json", cwd=tmp_path)
     assert info.returncode == 0, info.stderr
-    assert "CPUExecutionProvider" in info.stdout
+    report = json.loads(info.stdout)
+    assert "CPUExecutionProvider" in report["providers"]
+    site = next((runtime_venv / "lib").glob("python3*/site-packages"))
+    assert Path(report["models_dir"]) == site / "relightcli" / "models"
+    shipped = json.loads((REPO / "models" / "manifest.json").read_text())["models"]
+    assert sorted(m["name"] for m in report["models"]) == sorted(shipped)
+    assert all(m["present"] and m["sha256_ok"] for m in report["models"]), report["models"]
 
 
-def test_runtime_venv_imports_every_module_without_torch(runtime_venv):
+def test_installed_wheel_relights_the_example_from_another_directory(runtime_venv, tmp_path):
+    for name in ("skier.jpg", "skier_mask.png", "noon_grass.hdr"):
+        shutil.copy(REPO / "examples" / name, tmp_path / name)
+    out = run_in(runtime_venv, str(runtime_venv / "bin" / "relight"), "skier.jpg", "--mask", "skier_mask.png",
+                 "--hdr", "noon_grass.hdr", "-o", "out/skier.png", "--outputs", "relit,albedo",
+                 "--resolution", "256", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    relit = (tmp_path / "out" / "skier.png").read_bytes()
+    assert relit.startswith(b"\x89PNG") and (tmp_path / "out" / "skier_albedo.png").is_file()
+
+
+def test_relight_models_dir_still_overrides_the_packaged_models(runtime_venv, tmp_path):
+    empty = tmp_path / "no-models"
+    empty.mkdir()
+    info = run_in(runtime_venv, str(runtime_venv / "bin" / "relight"), "info", cwd=tmp_path,
+                  env={"RELIGHT_MODELS_DIR": str(empty)})
+    assert info.returncode == 3
+    assert str(empty / "manifest.json") in info.stderr and "RELIGHT_MODELS_DIR" in info.stderr
+
+
+def test_installed_wheel_holds_every_module_and_imports_them_without_torch(runtime_venv):
     out = run_in(runtime_venv, str(runtime_venv / "bin" / "python"), "-c", IMPORT_EVERYTHING)
     assert out.returncode == 0, out.stderr
     count, _, verdict = out.stdout.split()
-    assert int(count) >= 10 and verdict == "no-torch", out.stdout
+    in_source = [m for m in pkgutil.walk_packages([str(REPO / "relightcli")], "relightcli.")
+                 if not m.name.endswith("__main__")]
+    assert int(count) == len(in_source) and verdict == "no-torch", out.stdout
 
 
 def dockerfile_apt_packages() -> set[str]:
@@ -115,7 +155,9 @@ def test_dockerfile_shape():
     assert "-c requirements.lock ." in DOCKERFILE  # the same pins as the runtime test
     assert re.search(r"^USER (?!root)\w+", DOCKERFILE, re.M)
     assert 'ENTRYPOINT ["relight"]' in DOCKERFILE
-    assert "COPY models " in DOCKERFILE and "RELIGHT_MODELS_DIR" in DOCKERFILE
+    # The models reach the image inside the wheel, not through an environment variable
+    assert "COPY models ./models" in DOCKERFILE and "RELIGHT_MODELS_DIR" not in DOCKERFILE
+    assert "relight info" in DOCKERFILE  # the build fails if the installed models are not found
     assert "export" in (REPO / ".dockerignore").read_text().split()
 
 

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from relightcli import __version__
-from relightcli.errors import EXIT_OK, EXIT_USAGE, RelightError, UsageError
+from relightcli.errors import EXIT_MISSING, EXIT_OK, EXIT_USAGE, RelightError, UsageError
 from relightcli.layers import (ALBEDO_SOURCES, DEFAULT_OUTPUTS, DEFAULT_RESOLUTION, DEFAULT_SPP_CAP,
                                DEFAULT_TARGET_ERROR, LAYERS, METHODS)
 
@@ -67,7 +67,8 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     sampling.add_argument("--target-error", type=_positive_float, metavar="E",
                           help="stop each pixel at this relative standard error, at most "
                                f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (results are deterministic per seed)")
+    parser.add_argument("--seed", type=seed_value, default=0,
+                        help="random seed >= 0 (an item's outputs depend on its input, the options and the seed only)")
     parser.add_argument("--resolution", type=_positive_int, default=DEFAULT_RESOLUTION, metavar="PX",
                         help=f"working resolution of the square person crop (default {DEFAULT_RESOLUTION}, "
                              "the paper's; 256 is twice as fast)")
@@ -77,6 +78,14 @@ def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def seed_value(text: str) -> int:
+    """A --seed: any integer >= 0 (the random streams are seeded with it)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value
 
 
@@ -190,7 +199,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if command == "info":
             args = info_parser().parse_args(argv[1:])
-            return _print_report(run_info(args), args.json)
+            report = run_info(args)
+            _print_report(report, args.json)
+            return _check_models(report["models"])
         if command == "eval":
             args = eval_parser().parse_args(argv[1:])
             return run_eval(args)
@@ -324,6 +335,20 @@ def run_info(args) -> dict:
         "providers": onnxruntime.get_available_providers(),
         "threads": args.threads or default_threads(),
     }
+
+
+def _check_models(models: list[dict]) -> int:
+    """EXIT_MISSING, each bad model named on stderr, when a model is absent or fails its sha256."""
+    from relightcli.nets.manifest import MODELS_FIX
+
+    bad = [m for m in models if not (m["present"] and m["sha256_ok"])]
+    for model in bad:
+        problem = "missing" if not model["present"] else "does not match its sha256 in the manifest"
+        print(f"relight: error: model {model['name']} {problem}: {model['file']}", file=sys.stderr)
+    if bad:
+        print(f"relight: fix: {MODELS_FIX}", file=sys.stderr)
+        return EXIT_MISSING
+    return EXIT_OK
 
 
 def _print_report(report: dict, as_json: bool) -> int:

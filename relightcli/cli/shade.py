@@ -13,6 +13,7 @@ import time
 import warnings
 from pathlib import Path
 
+from relightcli.cli import seed_value
 from relightcli.errors import InputError, OutputError, RelightWarning, UsageError
 
 # Below this many estimated rays forking sampling workers costs more than it saves
@@ -43,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="surface albedo for the second bounce (default 1: white)")
     parser.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
                         help="turn the environment about +Y, counter-clockwise seen from above")
-    parser.add_argument("--seed", type=int, default=0, metavar="S", help="sampling seed (default 0)")
+    parser.add_argument("--seed", type=seed_value, default=0, metavar="S", help="sampling seed >= 0 (default 0)")
     parser.add_argument("--strategy", choices=("mis", "env", "cosine", "uniform"), default="mis",
                         help="direction sampling (default mis: planned per environment)")
     parser.add_argument("--sampler", choices=("sobol", "independent"), default="sobol",

@@ -382,8 +382,11 @@ def _encode_pixels(fmt: str, rgb, alpha, bits, quality: int, half: bool, srgb: b
 
 
 def _write_pixels(path: str, pixels: np.ndarray, spec: oiio.ImageSpec) -> str | None:
-    """Write pixels to `path` with OIIO; returns None on success, else OIIO's error text."""
+    """Write pixels to `path` with OIIO; returns None on success, else OIIO's error text.
+    No time stamp: OpenEXR and TIFF writers add the time of writing as DateTime unless it is
+    set (empty drops it), and the same pixels must give the same bytes."""
     oiio.geterror()
+    spec.attribute("DateTime", "")
     image_output = oiio.ImageOutput.create(path)
     if image_output is None:
         return oiio.geterror() or "no writer for this format"

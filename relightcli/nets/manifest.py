@@ -30,7 +30,9 @@ MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 MODELS_DIR_ENV = "RELIGHT_MODELS_DIR"
 REQUIRED_KEYS = {"onnx": ("file", "sha256", "inputs", "outputs", "multiple"), "data": ("file", "sha256")}
-EXPORT_FIX = "re-export the models (python -m export.onnx_export) or reinstall them into the models directory"
+MODELS_FIX = ("reinstall relightcli (pip install --force-reinstall relightcli: the package carries its models; "
+              f"in a source checkout, git checkout models/), or set {MODELS_DIR_ENV} to a folder holding "
+              "manifest.json and the model files")
 
 
 @dataclass(frozen=True)
@@ -74,11 +76,17 @@ class ModelStatus:
 
 
 def models_dir() -> Path:
-    """$RELIGHT_MODELS_DIR when set, else `models/` next to the relightcli package."""
+    """Where the models are: $RELIGHT_MODELS_DIR when set; else the installed package's own
+    `relightcli/models/` (a wheel carries them as package data); else `models/` beside the
+    relightcli folder (a source checkout, or an editable install of one)."""
     override = os.environ.get(MODELS_DIR_ENV)
     if override:
         return Path(override).expanduser()
-    return Path(relightcli.__file__).resolve().parents[1] / "models"
+    package = Path(relightcli.__file__).resolve().parent
+    installed = package / "models"
+    if (installed / MANIFEST_NAME).is_file():
+        return installed
+    return package.parent / "models"
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
@@ -99,32 +107,31 @@ def load_manifest(directory: str | Path | None = None) -> dict[str, ModelEntry]:
     directory = Path(directory) if directory is not None else models_dir()
     path = directory / MANIFEST_NAME
     if not path.is_file():
-        raise MissingDependencyError("model manifest not found", path=path,
-                                     fix=f"set {MODELS_DIR_ENV} to the models directory or {EXPORT_FIX}")
+        raise MissingDependencyError("model manifest not found", path=path, fix=MODELS_FIX)
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MissingDependencyError(f"model manifest unreadable: {exc}", path=path, fix=EXPORT_FIX) from exc
+        raise MissingDependencyError(f"model manifest unreadable: {exc}", path=path, fix=MODELS_FIX) from exc
     if not isinstance(raw, dict) or raw.get("version") != MANIFEST_VERSION or not isinstance(raw.get("models"), dict):
         raise MissingDependencyError(f"model manifest is not version {MANIFEST_VERSION} with a 'models' table",
-                                     path=path, fix=EXPORT_FIX)
+                                     path=path, fix=MODELS_FIX)
     return {name: _parse_entry(name, spec, directory, path) for name, spec in raw["models"].items()}
 
 
 def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) -> ModelEntry:
     kind = spec.get("kind", "onnx") if isinstance(spec, dict) else "onnx"
     if kind not in REQUIRED_KEYS:
-        raise MissingDependencyError(f"model {name!r} has unknown kind {kind!r}", path=manifest_path, fix=EXPORT_FIX)
+        raise MissingDependencyError(f"model {name!r} has unknown kind {kind!r}", path=manifest_path, fix=MODELS_FIX)
     missing = [k for k in REQUIRED_KEYS[kind] if not isinstance(spec, dict) or k not in spec]
     if missing:
-        raise MissingDependencyError(f"model {name!r} lacks {', '.join(missing)}", path=manifest_path, fix=EXPORT_FIX)
+        raise MissingDependencyError(f"model {name!r} lacks {', '.join(missing)}", path=manifest_path, fix=MODELS_FIX)
     try:
         inputs = tuple(_parse_tensor(t) for t in spec.get("inputs", ()))
         outputs = tuple(_parse_tensor(t) for t in spec.get("outputs", ()))
         multiple = int(spec.get("multiple", 1))
     except (KeyError, TypeError, ValueError) as exc:
         raise MissingDependencyError(f"model {name!r} has a malformed I/O contract: {exc}",
-                                     path=manifest_path, fix=EXPORT_FIX) from exc
+                                     path=manifest_path, fix=MODELS_FIX) from exc
     return ModelEntry(
         name=name,
         path=directory / spec["file"],
@@ -152,7 +159,7 @@ def model_entry(name: str, directory: str | Path | None = None) -> ModelEntry:
     entries = load_manifest(directory)
     if name not in entries:
         raise MissingDependencyError(f"model {name!r} is not in the manifest (has: {', '.join(sorted(entries)) or 'none'})",
-                                     path=directory / MANIFEST_NAME, fix=EXPORT_FIX)
+                                     path=directory / MANIFEST_NAME, fix=MODELS_FIX)
     return entries[name]
 
 
@@ -161,10 +168,10 @@ def verified_file(name: str, directory: str | Path | None = None) -> Path:
     MissingDependencyError naming the file and the fix otherwise."""
     entry = model_entry(name, directory)
     if not entry.path.is_file():
-        raise MissingDependencyError(f"{name} file not found", path=entry.path, fix=EXPORT_FIX)
+        raise MissingDependencyError(f"{name} file not found", path=entry.path, fix=MODELS_FIX)
     if sha256_file(entry.path) != entry.sha256:
         raise MissingDependencyError(f"{name} file does not match its sha256 in the manifest (corrupt or replaced)",
-                                     path=entry.path, fix=EXPORT_FIX)
+                                     path=entry.path, fix=MODELS_FIX)
     return entry.path
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from relightcli.errors import MissingDependencyError, UsageError
-from relightcli.nets.manifest import EXPORT_FIX, ModelEntry, TensorContract, model_entry, sha256_file
+from relightcli.nets.manifest import MODELS_FIX, ModelEntry, TensorContract, model_entry, sha256_file
 
 CUDA_PROVIDER = "CUDAExecutionProvider"
 CPU_PROVIDER = "CPUExecutionProvider"
@@ -97,7 +97,7 @@ class ModelSession:
 
     def _contract_error(self, what: str) -> MissingDependencyError:
         return MissingDependencyError(f"model {self.name!r} does not match its I/O contract: {what}",
-                                      path=self.path, fix=EXPORT_FIX)
+                                      path=self.path, fix=MODELS_FIX)
 
     def _check_family_contract(self) -> None:
         promised_in = {t.name for t in self.entry.inputs}
@@ -111,13 +111,13 @@ class ModelSession:
 
     def _check_file(self, verify_sha256: bool) -> None:
         if not self.path.is_file():
-            raise MissingDependencyError(f"model file for {self.name!r} not found", path=self.path, fix=EXPORT_FIX)
+            raise MissingDependencyError(f"model file for {self.name!r} not found", path=self.path, fix=MODELS_FIX)
         if verify_sha256:
             actual = sha256_file(self.path)
             if actual != self.entry.sha256:
                 raise MissingDependencyError(
                     f"model file is corrupt or outdated: sha256 {actual[:12]}... != manifest {self.entry.sha256[:12]}...",
-                    path=self.path, fix=EXPORT_FIX)
+                    path=self.path, fix=MODELS_FIX)
 
     def _create_session(self, threads: int | None, providers: list[str] | None):
         ort = _import_onnxruntime()
@@ -136,7 +136,7 @@ class ModelSession:
         # all plain Exception subclasses; any of them means the file cannot be used.
         except Exception as exc:  # noqa: BLE001 - re-raised as a project error, not swallowed
             raise MissingDependencyError(f"ONNX Runtime cannot load the model: {exc}",
-                                         path=self.path, fix=EXPORT_FIX) from exc
+                                         path=self.path, fix=MODELS_FIX) from exc
 
     def _check_graph_contract(self) -> None:
         for kind, promised, actual in (

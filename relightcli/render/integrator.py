@@ -39,7 +39,7 @@ STRATEGIES = ("mis", "env", "cosine", "uniform")
 # Independent randomisations of the Sobol sequence per pixel (standard error from R means)
 RQMC_GROUPS = 4
 SAMPLERS = ("sobol", "independent")
-# Rays per vectorised round and process (bounds memory: ~300 bytes per ray in flight)
+# Rays per vectorised round, shared by the processes (bounds memory: ~300 bytes per ray in flight)
 ROUND_RAYS = 1 << 19
 # Share of the energy in the brightest 0.1% of texels from which the sun is sampled apart
 SUN_SPLIT_FRACTION = 0.1
@@ -329,19 +329,19 @@ def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, w
     """Run passes in rounds until every pixel is done, spp is reached or time is up."""
     if workers > 1:
         with ForkedPasses(run, workers) as pool:
-            _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start,
-                    ROUND_RAYS * workers)
+            _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start)
     else:
         def statistics(first_pass, passes, rows, groups):
             return pass_statistics(run.values(first_pass, passes, rows), first_pass, groups)
 
-        _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start,
-                ROUND_RAYS)
+        _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start)
 
 
-def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start, round_rays):
+def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start):
     """The sampling loop; statistics(first_pass, passes, rows, groups) evaluates a round.
-    Adaptive decisions use `run.stopping_error` (pooled over neighbours)."""
+    Adaptive decisions use `run.stopping_error` (pooled over neighbours). The rounds, and so
+    which pixel gets which passes, do not depend on how many processes share them: without a
+    time budget the result is the same for any worker count."""
     adaptive = target_error is not None or time_budget is not None
     active = np.arange(state.count.size)
     done_passes = 0
@@ -349,7 +349,7 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
     rays_per_pass = run.plan.rays_per_pass + (2 if run.bounces == 2 else 0)
     while active.size and done_passes < spp:
         passes = _round_passes(done_passes, spp, active.size, rays_per_pass, adaptive, min_spp,
-                               None if error is None else error[active], target_error, round_rays)
+                               None if error is None else error[active], target_error)
         passes = min(_round_up(passes, state.groups), spp - done_passes)
         if time_budget is not None and seconds_per_pass_pixel is not None:
             left = (1.0 - FINISH_SHARE) * time_budget - (time.perf_counter() - start)
@@ -376,13 +376,12 @@ def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, sta
             active = active[error[active] >= NEGLIGIBLE_SHARE * np.median(error[active])]
 
 
-def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, error, target_error,
-                  round_rays):
+def _round_passes(done, spp, n_active, rays_per_pass, adaptive, min_spp, error, target_error):
     """Passes in the next round: a first round of min_spp when adaptive, then about as many as
     the median active pixel still needs (`error`: the active pixels' stopping errors), between
     half and all of what is done so far (so the rounds, each with a fixed cost, grow
     geometrically), within spp and the ray budget."""
-    cap = max(1, round_rays // (rays_per_pass * n_active))
+    cap = max(1, ROUND_RAYS // (rays_per_pass * n_active))
     if not adaptive:
         return int(min(spp - done, cap))
     if done == 0:

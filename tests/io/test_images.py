@@ -556,3 +556,14 @@ def test_data_maps_round_trip_exactly_without_srgb(tmp_path, bits):
     back = read_image(path, srgb=False).rgb[..., 0]
     np.testing.assert_allclose(back, values, atol=0.5 / (2**bits - 1))
     assert back[0, 0] == 0.0 and back[0, 3] == 1.0
+
+
+@pytest.mark.parametrize("name", ["a.exr", "a.png", "a.jpg", "a.hdr"])
+def test_written_files_carry_no_time_stamp(tmp_path, name):
+    """The same pixels give the same bytes: OpenEXR would stamp the time of writing."""
+    rgb = np.linspace(0.0, 1.0, 8 * 6 * 3, dtype=np.float32).reshape(8, 6, 3)
+    images.write_image(tmp_path / name, rgb)
+    image_input = oiio.ImageInput.open(str(tmp_path / name))
+    names = [attribute.name for attribute in image_input.spec().extra_attribs]
+    image_input.close()
+    assert "DateTime" not in names

@@ -242,8 +242,13 @@ def test_same_seed_same_image(sampler):
     assert np.any(a.mean != c.mean)
 
 
+@pytest.mark.parametrize("round_rays", [None, 2048])  # 2048: many rounds, each capped by its rays
 @pytest.mark.parametrize("target_error", [None, 0.05])
-def test_two_workers_give_the_same_image_as_one(target_error):
+def test_two_workers_give_the_same_image_as_one(target_error, round_rays, monkeypatch):
+    import relightcli.render.integrator as integrator
+
+    if round_rays is not None:
+        monkeypatch.setattr(integrator, "ROUND_RAYS", round_rays)
     scene, geometry = _body_like_scene()
     light = EnvironmentLight(_sun_and_sky_map())
     one = shade_environment(scene, geometry, light, spp=32, seed=4, target_error=target_error)
