@@ -149,7 +149,7 @@ def main(argv=None) -> int:
 
 
 def _update_manifest(models_dir, split: str, report: dict) -> None:
-    from export.onnx_export import update_manifest
+    from export.manifest import update_manifest
     from relightcli.nets.manifest import MANIFEST_NAME, models_dir as default_models_dir
 
     models_dir = models_dir or default_models_dir()

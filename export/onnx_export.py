@@ -28,7 +28,8 @@ import torch
 
 from export.nets import FAMILIES, build_net
 from export.nets.contract import IOContract
-from relightcli.nets.manifest import MANIFEST_NAME, MANIFEST_VERSION, sha256_file
+from export.manifest import update_manifest
+from relightcli.nets.manifest import sha256_file
 
 OPSET = 17
 METADATA_KEY = "relightcli.contract"
@@ -145,17 +146,6 @@ def parity(net: torch.nn.Module, path: str | Path, feeds: dict[str, np.ndarray])
     if isinstance(torch_out, torch.Tensor):
         torch_out = (torch_out,)
     return {n: float(np.max(np.abs(o - t.numpy()))) for n, o, t in zip(names, ort_out, torch_out)}
-
-
-def update_manifest(models_dir: str | Path, name: str, entry: dict) -> Path:
-    """Insert or replace model `name` in `<models_dir>/manifest.json` (created when absent)."""
-    path = Path(models_dir) / MANIFEST_NAME
-    manifest = json.loads(path.read_text()) if path.is_file() else {"version": MANIFEST_VERSION, "models": {}}
-    manifest["models"][name] = entry
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
-    tmp.replace(path)
-    return path
 
 
 class _CalibrationReader:

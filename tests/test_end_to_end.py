@@ -23,7 +23,8 @@ EXAMPLES = REPO / "examples"
 @pytest.fixture(scope="module")
 def random_models(tmp_path_factory):
     from export.nets import build_net
-    from export.onnx_export import export_onnx, update_manifest
+    from export.manifest import update_manifest
+    from export.onnx_export import export_onnx
 
     folder = tmp_path_factory.mktemp("models")
     shutil.copy(REPO / "models" / "manifest.json", folder / "manifest.json")

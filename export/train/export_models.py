@@ -6,7 +6,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from export.onnx_export import export_onnx, parity, person_like_inputs, update_manifest
+from export.manifest import update_manifest
+from export.onnx_export import export_onnx, parity, person_like_inputs
 
 PARITY_TOLERANCE = 1e-3  # max |ORT - torch|; the nets' own tests see ~1e-6
 MAX_LIST = 8  # longer lists in the data card are summarised by their length

@@ -1,0 +1,3 @@
+from export.perception.build import main
+
+main()
