@@ -23,7 +23,8 @@ MIN_SIDE = 32
 
 # Stages in execution order, each with the stages it needs.
 STAGE_NEEDS = {
-    "mask": (),  # from the input's alpha, --mask, or the mask net
+    "people": (),  # person detection, pose and segmentation of everyone in the photo
+    "mask": ("people",),  # from the input's alpha, --mask, or the people's segmentations
     "crop": ("mask",),  # square around the person at the working resolution
     "geometry": ("crop",),  # front/back normals and depth
     "ao": ("crop",),  # ambient occlusion net
@@ -100,8 +101,9 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
         skipped["raytrace"] = f"--method {options.method} shades with spherical harmonics"
     if options.method == "raytrace-norefine":
         skipped["refine"] = "--method raytrace-norefine"
-    if "mask" in needed and has_alpha:
-        skipped["mask_net"] = "the input brings an alpha channel or --mask"
+    if "people" in run and has_alpha:
+        run.remove("people")
+        skipped["people"] = "the input brings an alpha channel or --mask (nothing else needs the people yet)"
     if "face_refine" in run and not _face_refinement_ships():
         for stage in ("face", "face_refine"):
             run.remove(stage)

@@ -106,7 +106,7 @@ def test_mask_output_from_alpha(tmp_path, env_path, capsys):
     assert values[3, 5] == pytest.approx(0.5, abs=1 / 255)
     # The plan: mask from alpha, no network needed for this output.
     assert item["plan"]["run"] == ["mask"]
-    assert "mask_net" in item["plan"]["skipped"]
+    assert "people" in item["plan"]["skipped"]
     assert set(item["seconds"]) >= {"load", "mask", "write", "total"}
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from relightcli.compose import (
+    snap_mask,
     CropBox,
     composite,
     composite_crop,
@@ -20,7 +21,6 @@ from relightcli.compose import (
     anchor_albedo,
     preview_sheet,
     ratio_albedo,
-    refine_mask,
     relight,
     replace_in_box,
 )
@@ -265,38 +265,23 @@ def iou(a, b):
     return np.logical_and(a > 0.5, b > 0.5).sum() / np.logical_or(a > 0.5, b > 0.5).sum()
 
 
-def test_refine_mask_snaps_a_misplaced_net_mask_to_the_photos_edge():
+def test_snap_mask_pulls_a_blurred_mask_to_the_photos_edge_and_keeps_it_soft():
     crop, truth = disc_scene(radius=60.0)
-    # The net's mask at a 512 crop: 3 px off to the right and 2 px swollen (the sure inside is
-    # the mask eroded by 4 px, so it stays inside the disc)
-    net = cv2.dilate(np.roll(truth, 3, axis=1), np.ones((5, 5), np.uint8))
-    got = refine_mask(crop, net)
-    assert got.shape == truth.shape and set(np.unique(got)) <= {0.0, 1.0}
-    assert iou(net, truth) < 0.92 and iou(got, truth) > 0.99
+    # What a 256-px segmentation enlarged to a 512 crop looks like: blurred, 2 px off
+    soft = cv2.GaussianBlur(np.roll(truth, 2, axis=1), (0, 0), 3.0)
+    got = snap_mask(crop, soft)
+    assert got.dtype == np.float32 and got.shape == truth.shape and 0.0 <= got.min() and got.max() <= 1.0
+    edge = np.abs(cv2.Laplacian(truth, cv2.CV_32F)) > 0
+    assert np.abs(got - truth)[edge].mean() < np.abs(soft - truth)[edge].mean()
+    assert iou(got, truth) > iou(soft, truth)
 
 
-def test_refine_mask_declines_without_a_sure_inside_or_outside_and_survives_nan_texels():
+def test_snap_mask_survives_nan_and_infinite_pixels():
     crop, truth = disc_scene()
-    assert refine_mask(crop, np.zeros_like(truth)) is None
-    assert refine_mask(crop, np.ones_like(truth)) is None  # nothing is surely background
     crop[10:20, 10:20] = np.nan
     crop[250:252, 250:252] = np.inf
-    got = refine_mask(crop, truth)
+    got = snap_mask(crop, truth)
     assert np.isfinite(got).all() and iou(got, truth) > 0.99
-
-
-def test_refine_mask_depends_on_its_inputs_and_seed_only():
-    """GrabCut draws from OpenCV's per-thread random generator: what ran before on the thread
-    (another photo's GrabCut) must not change this photo's mask."""
-    rng = np.random.default_rng(3)
-    crop = rng.uniform(0.0, 1.0, (128, 128, 3)).astype(np.float32)  # colours GrabCut cannot split cleanly
-    net = np.zeros((128, 128), np.float32)
-    net[24:104, 40:88] = 1.0
-    first = refine_mask(crop, net)
-    refine_mask(rng.uniform(0.0, 1.0, (128, 128, 3)).astype(np.float32), net)
-    cv2.randu(np.empty((64, 64), np.float32), 0.0, 1.0)  # anything else drawing on the thread
-    np.testing.assert_array_equal(refine_mask(crop, net), first)
-    assert not np.array_equal(refine_mask(crop, net, seed=1), first)  # the seed does reach it
 
 
 def test_replace_in_box_changes_only_the_box_even_where_it_leaves_the_photo():

@@ -1,8 +1,8 @@
 """An item's outputs are a function of (input, environment, options, seed) only: the same bytes
 alone, second in a batch, with one or two workers, one or two threads, on the local pool or Ray.
 
-Runs the shipped models on the example photo without its mask, so the mask net and GrabCut
-(which draws random numbers) run too; every layer is compared byte for byte."""
+Runs the shipped models on the example photo without its mask, so the people's detection and
+segmentation run too; every layer is compared byte for byte."""
 
 from __future__ import annotations
 

@@ -33,6 +33,12 @@ pytestmark = [
 ]
 
 
+# Photos whose person the pretrained detector does not find (a limit, measured): the run
+# fails with a clear error and writes nothing. Aldrin's spacesuit and gold visor hide the face
+# the BlazePose detector keys on.
+NO_PERSON_FOUND = {"nasa_apollo11_aldrin_fullbody.png"}
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_real_photo_relights_end_to_end(name, tmp_path, capsys):
     out = tmp_path / "out.png"
@@ -40,6 +46,10 @@ def test_real_photo_relights_end_to_end(name, tmp_path, capsys):
                  "--outputs", "relit,mask,shading", "--spp", "8", "--threads", "2", "--json"])
     report = json.loads(capsys.readouterr().out)
     item = report["items"][0]
+    if name in NO_PERSON_FOUND:
+        assert code == 1 and "no person found" in item["error"] and "--mask" in item["error"]
+        assert list(tmp_path.iterdir()) == []
+        return
     assert code == 0, item["error"]
     photo = read_image(PHOTOS / name)
     relit = read_image(item["outputs"]["relit"]).rgb
@@ -50,5 +60,6 @@ def test_real_photo_relights_end_to_end(name, tmp_path, capsys):
     share = float((mask > 0.5).mean())
     assert 0.02 < share < 0.9, f"mask covers {share:.1%} of the frame"
     assert set(item["seconds"]) >= set(item["plan"]["run"])
-    assert item["stages"]["mask"]["source"] in ("mask net", "alpha channel")
+    assert item["stages"]["mask"]["source"].startswith("pose segmentation of ")
+    assert len(item["stages"]["people"]["found"]) >= 1
     assert "face" in item["stages"] or "face" in item["plan"]["skipped"]  # ran, or skipped with a reason

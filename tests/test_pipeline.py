@@ -3,12 +3,16 @@ networks whose outputs are known, so results can be checked analytically."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from relightcli.batch import ItemReport
 from relightcli.nets.delight import DelightResult
+from relightcli.errors import RelightError
+from relightcli.nets.blaze import Detection
 from relightcli.nets.geometry import GeometryMaps
+from relightcli.nets.pose import Pose
 from relightcli.pipeline import RelightOptions, plan_stages, run_stages
 from relightcli.stages import Models
 
@@ -20,11 +24,12 @@ def plan(outputs, method="raytrace", has_alpha=True):
 def test_mask_only_runs_no_network_when_alpha_given():
     p = plan(["mask"], has_alpha=True)
     assert p.run == ["mask"]
-    assert "mask_net" in p.skipped and "geometry" in p.skipped
+    assert "people" in p.skipped and "geometry" in p.skipped
 
 
-def test_mask_net_is_not_skipped_without_alpha():
-    assert "mask_net" not in plan(["mask"], has_alpha=False).skipped
+def test_people_are_found_without_alpha():
+    p = plan(["mask"], has_alpha=False)
+    assert p.run == ["people", "mask"] and "people" not in p.skipped
 
 
 def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
@@ -83,6 +88,22 @@ class StandInModels(Models):
         self.used.append(family)
         return self
 
+    people_disc = None  # (cx, cy, radius) in photo pixels of the stand-in person, or None
+
+    def detect(self, image):
+        if self.people_disc is None:
+            return []
+        cx, cy, radius = self.people_disc
+        return [Detection(np.array([cx - 5, cy - radius, cx + 5, cy - radius + 10]),
+                          np.array([[cx, cy], [cx, cy - radius]], np.float64), 0.9)]
+
+    def landmarks(self, image, rect):
+        """A person whose segmentation is the disc, blurred as an enlarged net map is."""
+        cx, cy, radius = self.people_disc
+        y, x = np.mgrid[:image.shape[0], :image.shape[1]] + 0.5
+        mask = cv2.GaussianBlur(((x - cx) ** 2 + (y - cy) ** 2 < radius ** 2).astype(np.float32), (0, 0), 2.0)
+        return Pose(rect, 1.0, np.zeros((33, 5)), np.zeros((33, 3)), mask, rect)
+
     def predict(self, image, normal=None):
         size = image.shape[0]
         if normal is not None:  # delight
@@ -139,33 +160,44 @@ def test_albedo_is_the_photo_over_the_estimated_shading_or_the_nets(source):
     assert dark < 0.25 < bright
 
 
-def test_mask_net_runs_only_without_alpha():
+def test_people_and_mask_stages_run_only_without_alpha():
     image, mask = photo_with_person()
     env = np.ones((8, 16, 3), np.float32)
     options = RelightOptions(outputs=("normal",), method="sh9", resolution=32)
     with_alpha = StandInModels()
     run_stages(image, mask, env, options, ItemReport("x"), with_alpha)
     without_alpha = StandInModels()
+    without_alpha.people_disc = (35.0, 50.0, 20.0)
     frame, _ = run_stages(image, None, env, options, ItemReport("x"), without_alpha)
     assert with_alpha.used == ["geometry"]
-    assert without_alpha.used == ["geometry", "geometry"]  # mask on the whole photo, then the crop
-    assert frame.notes["mask"]["source"] == "mask net"
+    assert without_alpha.used == ["person_detector", "pose_landmarks", "geometry"]
+    assert frame.notes["mask"]["source"] == "pose segmentation of 1 person"
+    assert len(frame.notes["people"]["found"]) == 1 and frame.notes["people"]["turned_down"] == []
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
 
 
-def test_the_mask_nets_mask_is_snapped_to_the_photos_edges():
-    # A red person on a green background; the stand-in net's mask (a disc of radius 54 px in
-    # the frame) misses a 2-px ring of them: GrabCut in the person's crop finds the ring
+def test_the_peoples_mask_is_snapped_to_the_photos_edges():
+    # A red person on a green background; the stand-in segmentation is the disc blurred and
+    # 2 px too small: the guided filter pulls its edge to the photo's
     height, width = 180, 140
     y, x = np.mgrid[:height, :width] + 0.5
-    net_disc = (x + 20 - 90) ** 2 + (y - 90) ** 2 < 54**2  # the letterbox square starts at x = -20
-    person = (x + 20 - 90) ** 2 + (y - 90) ** 2 < 56**2
+    person = (x - 70) ** 2 + (y - 90) ** 2 < 56**2
     image = np.where(person[..., None], [0.6, 0.05, 0.05], [0.05, 0.4, 0.1]).astype(np.float32)
+    models = StandInModels()
+    models.people_disc = (70.0, 90.0, 54.0)
     options = RelightOptions(outputs=("mask",), method="sh9", resolution=512)
-    frame, _ = run_stages(image, None, np.ones((8, 16, 3), np.float32), options, ItemReport("x"), StandInModels())
-    assert frame.notes["mask"] == {"source": "mask net", "refined": "grabcut"}
-    iou = lambda a: np.logical_and(a, person).sum() / np.logical_or(a, person).sum()  # noqa: E731
-    assert iou(net_disc) < 0.94 and iou(frame.mask > 0.5) > 0.97
+    frame, _ = run_stages(image, None, np.ones((8, 16, 3), np.float32), options, ItemReport("x"), models)
+    assert frame.notes["mask"]["edges"] == "guided filter"
+    raw = models.landmarks(image, None).mask
+    error = lambda a: np.abs(a - person)[np.abs(cv2.Laplacian(person.astype(np.float32), cv2.CV_32F)) > 0].mean()  # noqa: E731
+    assert error(frame.mask) < error(raw)
+
+
+def test_a_photo_without_a_person_fails_saying_how_to_fix_it():
+    image = np.full((60, 50, 3), 0.3, np.float32)
+    options = RelightOptions(outputs=("relit",), method="sh9", resolution=32)
+    with pytest.raises(RelightError, match="no person found.*--mask"):
+        run_stages(image, None, np.ones((8, 16, 3), np.float32), options, ItemReport("x"), StandInModels())
 
 
 class SphereModels(StandInModels):
