@@ -94,6 +94,16 @@ def _peak_reporter(path: Path) -> list[str]:
     return [sys.executable, "-c", script, str(path)]
 
 
+def side_by_side(count: int) -> Path:
+    """A photo of `count` people: the example repeated, every other copy mirrored."""
+    import cv2
+
+    example = cv2.imread(str(EXAMPLE))
+    path = Path(tempfile.mkdtemp()) / f"people_{count}.png"
+    cv2.imwrite(str(path), np.hstack([example if k % 2 == 0 else example[:, ::-1] for k in range(count)]))
+    return path
+
+
 def scene_files(scene: Path | None) -> tuple[Path, Path, Path]:
     """(photo, mask, environment) of an eval scene folder, or the shipped example's."""
     if scene is None:
@@ -113,14 +123,20 @@ def main() -> None:
                         help="an eval scene folder (input.png, gt_mask.png, target.hdr) instead of the example, "
                              "e.g. one with a face to time the face path")
     parser.add_argument("--predict-mask", action="store_true",
-                        help="leave the mask out: time the mask net and its edge snapping too")
+                        help="leave the mask out: time finding the people and their mask too")
+    parser.add_argument("--people", type=int, default=None, metavar="N",
+                        help="the example N times side by side (mirrored every other time), no mask: "
+                             "the time for N people in one photo")
     args = parser.parse_args()
     from relightcli.layers import DEFAULT_RESOLUTION
 
     resolution = args.resolution or DEFAULT_RESOLUTION
+    photo, mask, hdr = scene_files(args.scene)
+    if args.people:
+        photo, args.predict_mask = side_by_side(args.people), True
     result = {"resolution": resolution, "threads": args.threads, "cpu": os.cpu_count(),
               "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error,
-                                            *scene_files(args.scene), predict_mask=args.predict_mask)}
+                                            photo, mask, hdr, predict_mask=args.predict_mask)}
     if args.memory:
         result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp, args.predict_mask)
     print(f"median over {args.runs} runs, {resolution}x{resolution} crop, {args.threads} threads")
@@ -128,7 +144,8 @@ def main() -> None:
         print(f"  {stage:<22} {seconds:8.3f}")
     if "memory" in result:
         print(f"24 MP photo: peak RSS {result['memory']['peak_rss_mb']:.0f} MB, {result['memory']['seconds']:.1f} s")
-    suffix = (f"_{args.scene.name}" if args.scene else "") + ("_predicted_mask" if args.predict_mask else "")
+    suffix = ((f"_{args.scene.name}" if args.scene else "") + (f"_{args.people}_people" if args.people else "")
+              + ("_predicted_mask" if args.predict_mask else ""))
     out = REPO / "bench" / "results" / f"pipeline_{resolution}{suffix}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")

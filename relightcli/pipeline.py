@@ -30,7 +30,7 @@ STAGE_NEEDS = {
     "ao": ("crop",),  # ambient occlusion net
     "delight": ("geometry",),  # albedo + input-light estimate
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
-    "face": ("geometry",),  # face detection, landmarks, morphable-model fit
+    "face": ("people", "geometry"),  # face detector + mesh on the people's heads, morphable-model fit
     "raytrace": ("reconstruct",),  # coarse body shading under the target environment
     "sh_shading": ("geometry",),  # SH-9/25 irradiance from predicted normals (baselines)
     "refine": ("raytrace", "ao"),  # body refinement net
@@ -101,14 +101,14 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
         skipped["raytrace"] = f"--method {options.method} shades with spherical harmonics"
     if options.method == "raytrace-norefine":
         skipped["refine"] = "--method raytrace-norefine"
-    if "people" in run and has_alpha:
-        run.remove("people")
-        skipped["people"] = "the input brings an alpha channel or --mask (nothing else needs the people yet)"
     if "face_refine" in run and not _face_refinement_ships():
         for stage in ("face", "face_refine"):
             run.remove(stage)
             skipped[stage] = ("models/manifest.json has no face_refine model: the body "
                               "refinement's shading is used over the face too")
+    if "people" in run and has_alpha and "face" not in run:
+        run.remove("people")
+        skipped["people"] = "the input brings an alpha channel or --mask (only the face stage needs the people)"
     return Plan(run, skipped)
 
 

@@ -28,7 +28,8 @@ def random_models(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("models")
     shutil.copy(REPO / "models" / "manifest.json", folder / "manifest.json")
-    for name in ("face_model.npz", "landmarks.onnx", "face_refine.onnx"):  # the face path as shipped
+    for name in ("face_model.npz", "face_refine.onnx", "person_detector.onnx", "pose_landmarks.onnx",
+                 "face_detector.onnx", "face_mesh.onnx", "face_correspondence.npz"):  # the face path as shipped
         shutil.copy(REPO / "models" / name, folder / name)
     torch.manual_seed(0)
     torch.set_num_threads(1)
@@ -48,10 +49,10 @@ def test_every_layer_of_the_example(random_models, tmp_path, capsys, monkeypatch
     report = json.loads(capsys.readouterr().out)
     assert code == 0, report
     item = report["items"][0]
-    assert item["plan"]["run"] == ["mask", "crop", "geometry", "ao", "delight", "reconstruct", "face",
+    assert item["plan"]["run"] == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "face",
                                    "raytrace", "refine", "face_refine", "compose"]
-    # The skier's face is behind goggles: the face stage says so and the body's shading stays
-    assert "no frontal or profile face" in item["stages"]["face_refine"]["skipped"]
+    # The skier's face (goggles, 30 px) is found by the face mesh in the head square his pose places
+    assert item["stages"]["face"]["path"] == "face mesh" and item["stages"]["face"]["head"] == "person 0"
     assert set(item["seconds"]) >= set(item["plan"]["run"]) | {"load", "write", "total"}
     assert item["stages"]["raytrace"]["rays"] > 0
     photo = read_image(EXAMPLES / "skier.jpg")

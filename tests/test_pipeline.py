@@ -37,9 +37,19 @@ def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
 
     monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
     p = plan(["relit"])
-    assert p.run == ["mask", "crop", "geometry", "ao", "delight", "reconstruct", "face", "raytrace", "refine",
-                     "face_refine", "compose"]
+    assert p.run == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "face", "raytrace",
+                     "refine", "face_refine", "compose"]
     assert "sh_shading" in p.skipped
+
+
+def test_the_face_plans_the_people_although_the_input_brings_a_mask(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
+    assert "people" in plan(["relit"], has_alpha=True).run
+    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: False)
+    p = plan(["relit"], has_alpha=True)
+    assert "people" not in p.run and "face" in p.skipped["people"]
 
 
 def test_no_face_refinement_model_plans_no_face_fit(monkeypatch):

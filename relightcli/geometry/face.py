@@ -1,20 +1,22 @@
-"""The face stage (issue 6): detect the face, regress its 68 landmarks, fit the ICT FaceKit
-model to them, and ray-trace the fitted face's coarse shading pixel-aligned with the face crop.
+"""The face stage (issue 6, issue 17): fit the ICT FaceKit model to a face's 68 landmarks, and
+ray-trace the fitted face's coarse shading pixel-aligned with the face crop.
 
-`fit_face_in_crop` runs the first part on the person crop and returns the fit or a reason to
-skip; `render_face_shading` renders the second. The parts live in
+At run time the face is found by MediaPipe's face detector and face mesh
+(relightcli.nets.face_mesh, on a head square placed by the pose) and its 468 points give the
+68 landmarks (face_correspondence.py); `fit_face_to_landmarks` frames the 128x128 face crop
+around them (`face_box_around`) and fits. `render_face_shading` renders the second part. The
+parts live in
 - face_model.py: the shipped linear model (models/face_model.npz) and the weak-perspective
   camera helpers (DESIGN.md pixel convention);
 - face_fit.py: regularised Gauss-Newton fit of identity, expression and pose to 68 landmarks
   (optional weights, robust loss, optional depth), and the fitted mesh;
-- face_detect.py: OpenCV cascade detection with a (None, reason) skip path, and the 128x128
-  face crop rectangle;
-- relightcli/nets/landmarks.py: the landmark network (ONNX Runtime).
+- face_detect.py: the 128x128 face crop rectangle (and the OpenCV cascade detection);
+- face_correspondence.py: the 468 -> 68 table.
 
-Landmarks run twice: once on the crop around the detector's box, then on a crop re-centred on
-the first landmarks with the framing the net was trained around (CANONICAL_*), which removes
-the detector's jitter; the second pass's landmarks are mapped back to the first crop, the
-face crop every later stage uses.
+`fit_face_in_crop` (cascade + the 68-landmark net, relightcli/nets/landmarks.py, run twice:
+on the detector's crop, then on a crop re-centred on the first landmarks with the framing the
+net was trained around, CANONICAL_*) is the path this replaced; only the export side
+(export/factory/face_closeups.py, export/landmark_eval.py) still runs it.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from relightcli.geometry.face_detect import CropRect, FaceBox, detect_face, face_crop_rect
+from relightcli.geometry.face_detect import FACE_CROP_MARGIN, CropRect, FaceBox, detect_face, face_crop_rect
 from relightcli.geometry.face_fit import FaceFit, face_mesh, fit_face
 from relightcli.geometry.face_model import (
     FaceModel,
@@ -146,6 +148,55 @@ def face_landmarks(image, crop: CropRect, landmark_net, passes: int = 2) -> np.n
     return image_to_crop(points, crop)
 
 
+def face_box_around(landmarks) -> FaceBox:
+    """The face box whose `face_crop_rect` frames the (68, 2) landmarks (pixels) as the
+    face refinement net saw faces in training: the square side CANONICAL_SCALE x the
+    landmarks' larger extent, centred CANONICAL_SHIFT_UP x that side above their box's
+    centre (the cascade's median framing, which the closeups were cut with)."""
+    lo, hi = np.min(landmarks, axis=0), np.max(landmarks, axis=0)
+    side = CANONICAL_SCALE * float(np.max(hi - lo)) / FACE_CROP_MARGIN
+    cx = (lo[0] + hi[0]) / 2.0
+    cy = (lo[1] + hi[1]) / 2.0 - CANONICAL_SHIFT_UP * side * FACE_CROP_MARGIN  # rows grow downward
+    # +0.5: face_crop_rect takes the box in edge coordinates, the landmarks are pixel centres
+    return FaceBox(left=cx + 0.5 - side / 2.0, top=cy + 0.5 - side / 2.0, width=side, height=side,
+                   angle=0.0, neighbours=0)
+
+
+def fit_face_to_landmarks(landmarks, crop_shape, *, model: FaceModel | None = None,
+                          image_rect=PERSON_CROP_RECT, depth=None,
+                          landmark_sigma_px: float = LANDMARK_SIGMA_PX,
+                          max_residual_px: float = MAX_RESIDUAL_PX):
+    """Fit the face model to a face's 68 iBUG landmarks found in the person crop.
+
+    landmarks (68, 2) float (col, row) pixels of the (R, R) person crop (`crop_shape`);
+    image_rect: the crop's world rectangle (x0, x1, y0, y1), by default the working crop's
+    [-1, 1]^2; depth: optional (R, R) world z of the visible surface (e.g. the geometry net's
+    front depth), which places the face along z. Returns (FaceFit, info) with the fit in the
+    128x128 face crop's frame (`fit.rect`; `info["crop"]` = [left, top, size, resolution] in
+    pixels of the person crop, framed by face_box_around), or (None, info) with
+    info["skipped"] saying why (too small, a fit that does not explain the landmarks).
+    """
+    model = model or FaceModel.load()
+    box = face_box_around(landmarks)
+    crop = face_crop_rect(box)
+    info = {"box": [round(float(v), 1) for v in (box.left, box.top, box.width, box.height)],
+            "crop": [crop.left, crop.top, crop.size, crop.resolution]}
+    local = image_to_crop(landmarks, crop)
+    rect = crop.world_rect(image_rect, crop_shape)
+    face_depth = None if depth is None else cut_crop(np.asarray(depth, np.float32), crop)
+    fit = fit_face(local, model, rect, (crop.resolution, crop.resolution), depth=face_depth,
+                   landmark_sigma_px=landmark_sigma_px)
+    yaw, pitch, roll = rotation_angles_deg(fit.rotation)
+    info.update(landmarks=int(local.shape[0]), inliers=int(fit.inliers.sum()),
+                residual_px=round(fit.residual_px, 2),
+                angles_deg=[round(yaw, 1), round(pitch, 1), round(roll, 1)])
+    problem = implausible_fit(fit, local, max_residual_px)
+    if problem:
+        info["skipped"] = f"{problem}: face stage skipped"
+        return None, info
+    return fit, info
+
+
 def fit_face_in_crop(image_crop, mask_crop, landmark_net, *, model: FaceModel | None = None,
                      image_rect=PERSON_CROP_RECT, depth=None, passes: int = 2,
                      landmark_sigma_px: float = LANDMARK_SIGMA_PX,
@@ -237,6 +288,6 @@ def _face_pixels(scene, fit: FaceFit, size: int) -> np.ndarray:
 
 __all__ = ["CropRect", "FaceBox", "FaceFit", "FaceModel", "canonical_crop", "crop_to_image",
            "cut_crop", "detect_face", "face_blend_weight", "face_crop_rect", "face_landmarks",
-           "face_mesh", "fit_face", "fit_face_in_crop", "image_to_crop", "implausible_fit", "paste_crop",
+           "face_box_around", "face_mesh", "fit_face", "fit_face_in_crop", "fit_face_to_landmarks", "image_to_crop", "implausible_fit", "paste_crop",
            "pixel_to_world", "render_face_shading", "rotation_angles_deg", "rotation_matrix",
            "transform", "world_to_pixel"]

@@ -17,6 +17,18 @@ import cv2
 import numpy as np
 
 
+def sigmoid(x):
+    """Logits -> probabilities, clipped so that no exp overflows."""
+    return 1.0 / (1.0 + np.exp(-np.clip(x, -80.0, 80.0)))
+
+
+def net_input(image: np.ndarray, value_range) -> np.ndarray:
+    """(1, H, W, 3) float32 of an (H, W, 3) sRGB image in [0, 1] mapped linearly to the
+    net's `value_range` (low, high), as MediaPipe's image-to-tensor step does."""
+    low, high = value_range
+    return (low + (high - low) * np.clip(image, 0.0, 1.0))[None].astype(np.float32)
+
+
 @dataclass(frozen=True)
 class AnchorSpec:
     """SSD anchors on a square input (MediaPipe's SsdAnchorsCalculator with fixed-size anchors:

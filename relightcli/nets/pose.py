@@ -25,8 +25,10 @@ from relightcli.nets.blaze import (
     crop_to_photo,
     decode_detections,
     letterbox,
+    net_input,
     paste_crop,
     rect_from_keypoints,
+    sigmoid,
     ssd_anchors,
     weighted_nms,
 )
@@ -35,20 +37,12 @@ from relightcli.nets.session import ModelSession
 DETECTOR_ANCHORS = AnchorSpec(input_size=224, strides=(8, 16, 32, 32, 32))
 MIN_DETECTION_SCORE = 0.5   # MediaPipe's: lower lets horses and visors in (measured on photos)
 NMS_IOU = 0.3
+TILE_ASPECT = 1.4           # photos longer than this x their short side are also tiled
 MIN_PRESENCE = 0.5          # the landmark net's "a person is in this crop" flag
 DUPLICATE_IOU = 0.5         # two detections whose people overlap this much are one person
 ROI_SCALE = 1.25            # the crop around the keypoints' square
 BODY_LANDMARKS = 33         # of 39: the last 6 are auxiliary (ROI keypoints)
 HIP_CENTRE, ROI_EDGE = 33, 34  # the auxiliary landmarks that place the next crop
-
-
-def _sigmoid(x):
-    return 1.0 / (1.0 + np.exp(-np.clip(x, -80.0, 80.0)))
-
-
-def _to_range(image: np.ndarray, value_range) -> np.ndarray:
-    low, high = value_range
-    return (low + (high - low) * np.clip(image, 0.0, 1.0))[None].astype(np.float32)
 
 
 class PersonDetector(ModelSession):
@@ -59,20 +53,37 @@ class PersonDetector(ModelSession):
     def detect(self, image: np.ndarray, min_score: float = MIN_DETECTION_SCORE) -> list[Detection]:
         """Every person in `image` (H, W, 3) sRGB in [0, 1], best first: a face box and 4
         keypoints (hip centre, a point on the circle around the body, face centre, a point on
-        the circle around the head) in photo pixels."""
+        the circle around the head) in photo pixels. The detector sees the whole photo
+        letterboxed and, for a photo much wider than high or the other way, also overlapping
+        squares along its long side (people stay larger in them); one weighted NMS merges all."""
         size = DETECTOR_ANCHORS.input_size
-        square, (sx, sy, ox, oy) = letterbox(image, size)
+        anchors = ssd_anchors(DETECTOR_ANCHORS)
         value_range = self.entry.config.get("value_range", (-1.0, 1.0))
-        out = self.run({"image": _to_range(square, value_range)})
-        boxes, keypoints, scores = decode_detections(out["boxes"][0], out["scores"][0, :, 0],
-                                                     ssd_anchors(DETECTOR_ANCHORS), size, min_score)
-        scale, offset = np.array([sx, sy]), np.array([ox, oy])
-        detections = []
-        for box, points, score in weighted_nms(boxes, keypoints, scores, NMS_IOU):
-            to_photo = lambda p: (p * size - offset) / scale  # noqa: E731
-            corners = to_photo(box.reshape(2, 2)).reshape(4)
-            detections.append(Detection(corners, to_photo(points), score))
-        return detections
+        boxes, keypoints, scores = [], [], []
+        for x0, y0, window in detector_windows(*image.shape[:2]):
+            square, (sx, sy, ox, oy) = letterbox(image[y0:y0 + window[1], x0:x0 + window[0]], size)
+            out = self.run({"image": net_input(square, value_range)})
+            box, points, score = decode_detections(out["boxes"][0], out["scores"][0, :, 0], anchors, size, min_score)
+            scale, offset = np.array([sx, sy]), np.array([ox, oy]) - np.array([sx * x0, sy * y0])
+            boxes.append(((box.reshape(-1, 2, 2) * size - offset) / scale).reshape(-1, 4))
+            keypoints.append((points * size - offset) / scale)
+            scores.append(score)
+        merged = weighted_nms(np.concatenate(boxes), np.concatenate(keypoints), np.concatenate(scores), NMS_IOU)
+        return [Detection(box, points, score) for box, points, score in merged]
+
+
+def detector_windows(height: int, width: int) -> list[tuple[int, int, tuple[int, int]]]:
+    """(x0, y0, (w, h)) windows of the photo the detector runs on: the whole photo, and when
+    its long side exceeds TILE_ASPECT x the short one, squares of the short side spaced evenly
+    along the long side, overlapping by at least a quarter."""
+    windows = [(0, 0, (width, height))]
+    short, long = min(height, width), max(height, width)
+    if long <= TILE_ASPECT * short:
+        return windows
+    count = int(np.ceil((long - short) / (0.75 * short))) + 1
+    for start in np.linspace(0, long - short, count).round().astype(int):
+        windows.append((int(start), 0, (short, short)) if width >= height else (0, int(start), (short, short)))
+    return windows
 
 
 @dataclass
@@ -104,16 +115,16 @@ class PoseLandmarker(ModelSession):
         """The pose in `rect` of `image` (H, W, 3) sRGB in [0, 1]."""
         size = self.crop_size
         crop = crop_rect(image, rect, size)
-        out = self.run({"image": _to_range(crop, self.entry.config.get("value_range", (0.0, 1.0)))})
+        out = self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})
         raw = out["landmarks"][0].reshape(-1, 5).astype(np.float64)
         points = crop_to_photo(rect, raw[:, :2] / size)
         depth = raw[:, 2:3] / size * rect.width
-        landmarks = np.hstack([points, depth, _sigmoid(raw[:, 3:5])])
+        landmarks = np.hstack([points, depth, sigmoid(raw[:, 3:5])])
         world = out["world_landmarks"][0].reshape(-1, 3).astype(np.float64)
         c, s = np.cos(rect.rotation), np.sin(rect.rotation)
         world[:, :2] = world[:, :2] @ np.array([[c, s], [-s, c]])  # the crop's turn undone
         height, width = image.shape[:2]
-        mask = paste_crop(_sigmoid(out["segmentation"][0, :, :, 0]).astype(np.float32), rect, height, width)
+        mask = paste_crop(sigmoid(out["segmentation"][0, :, :, 0]).astype(np.float32), rect, height, width)
         next_rect = rect_from_keypoints(points[HIP_CENTRE], points[ROI_EDGE], np.pi / 2, ROI_SCALE)
         # the presence output is already a probability (a sigmoid inside the graph)
         return Pose(rect, float(out["presence"][0, 0]), landmarks[:BODY_LANDMARKS],

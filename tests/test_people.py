@@ -1,0 +1,117 @@
+"""Every person in the photo, with the shipped pretrained perception (BlazePose converted from
+the mediapipe wheel): two people side by side, a person cut by the frame, a T-pose's hands, a
+photo with nobody in it, and what the report says."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from relightcli.cli import main
+from relightcli.io.envmap import load_envmap
+from relightcli.io.images import linear_to_srgb, write_image
+from relightcli.nets.pose import PersonDetector, PoseLandmarker, find_people
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(__file__).resolve().parent / "data"
+HDR = REPO / "examples" / "noon_grass.hdr"
+
+
+@pytest.fixture(scope="module")
+def nets():
+    return PersonDetector(threads=2), PoseLandmarker(threads=2)
+
+
+def srgb(path: Path) -> np.ndarray:
+    """(H, W, 3) float32 sRGB in [0, 1], as the nets take it."""
+    return cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0
+
+
+def truth(path: Path) -> np.ndarray:
+    return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.logical_and(a, b).sum() / np.logical_or(a, b).sum())
+
+
+def people_mask(people) -> np.ndarray:
+    return np.max([p.pose.mask for p in people if p.found], axis=0) > 0.5
+
+
+def test_the_example_skier_is_found_with_a_mask_close_to_the_annotation(nets):
+    people = [p for p in find_people(srgb(REPO / "examples" / "skier.jpg"), *nets) if p.found]
+    assert len(people) == 1
+    assert iou(people_mask(people), truth(REPO / "examples" / "skier_mask.png")) > 0.88
+    landmarks = people[0].pose.landmarks
+    assert landmarks.shape == (33, 5) and np.isfinite(landmarks).all()
+    assert people[0].pose.world.shape == (33, 3) and np.abs(people[0].pose.world).max() < 2.0  # metres
+
+
+def test_two_people_side_by_side_are_both_found(nets):
+    skier = srgb(REPO / "examples" / "skier.jpg")
+    pair = np.hstack([skier, skier[:, ::-1]])  # the person and their mirror image
+    people = [p for p in find_people(pair, *nets) if p.found]
+    assert len(people) == 2
+    masks = [p.pose.mask > 0.5 for p in people]
+    halves = sorted(float(m[:, : skier.shape[1]].sum() / m.sum()) for m in masks)
+    assert halves[0] < 0.05 and halves[1] > 0.95  # one person in each half
+
+
+def test_a_person_cut_by_the_frame_is_found(nets):
+    image, mask = srgb(REPO / "examples" / "skier.jpg"), truth(REPO / "examples" / "skier_mask.png")
+    rows = np.flatnonzero(mask.any(axis=1))
+    cut = rows[0] + (rows[-1] - rows[0]) * 6 // 10  # the legs below 60% of the person are gone
+    people = [p for p in find_people(image[:cut], *nets) if p.found]
+    assert len(people) == 1 and iou(people_mask(people), mask[:cut]) > 0.85
+
+
+def test_a_tpose_keeps_both_hands(nets):
+    """The synthetic-trained mask net cut off outstretched arms (13% of T-posed people missing).
+    Here the arms are kept to the hands; the fingertips of one hand (15 px at 512) are the
+    largest miss: BlazePose's own hand landmarks stop short of them on this render."""
+    true_mask = truth(DATA / "tpose_render_mask.png")
+    people = [p for p in find_people(srgb(DATA / "tpose_render.png"), *nets) if p.found]
+    assert len(people) == 1
+    mask = people_mask(people)
+    assert iou(mask, true_mask) > 0.9
+    assert (true_mask & ~mask).sum() < 0.04 * true_mask.sum()
+    for wrist in people[0].pose.landmarks[15:17, :2]:  # BlazePose: 15 left wrist, 16 right wrist
+        assert mask[int(wrist[1]), int(wrist[0])] and true_mask[int(wrist[1]), int(wrist[0])]
+    cols, true_cols = np.flatnonzero(mask.any(axis=0)), np.flatnonzero(true_mask.any(axis=0))
+    span = true_cols[-1] - true_cols[0]
+    assert abs(cols[0] - true_cols[0]) <= 0.05 * span and abs(cols[-1] - true_cols[-1]) <= 0.05 * span
+
+
+def test_a_photo_without_a_person_fails_and_writes_nothing(tmp_path, capsys):
+    env = load_envmap(HDR)
+    height, width = env.shape[:2]
+    view = env[height // 4: 3 * height // 4, : width // 2]  # grass, trees, sky
+    photo = tmp_path / "in" / "landscape.png"
+    photo.parent.mkdir()
+    write_image(photo, np.clip(view / np.percentile(view, 90) * 0.8, 0.0, 1.0))
+    out = tmp_path / "out"
+    code = main([str(photo), "--hdr", str(HDR), "-o", str(out / "landscape.png"), "--json"])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 1
+    assert "landscape.png" in item["input"] and "no person found" in item["error"] and "--mask" in item["error"]
+    assert not out.exists() or list(out.iterdir()) == []
+
+
+def test_the_report_lists_every_person_and_the_mask_covers_them(tmp_path, capsys):
+    skier = cv2.imread(str(REPO / "examples" / "skier.jpg"))
+    photo = tmp_path / "pair.png"
+    cv2.imwrite(str(photo), np.hstack([skier, skier[:, ::-1]]))
+    code = main([str(photo), "--hdr", str(HDR), "-o", str(tmp_path / "out.png"), "--outputs", "mask", "--json"])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, item["error"]
+    found = item["stages"]["people"]["found"]
+    assert len(found) == 2 and all(p["detection_score"] >= 0.5 and p["presence"] >= 0.5 for p in found)
+    assert item["stages"]["mask"]["source"] == "pose segmentation of 2 people"
+    assert "people" in item["plan"]["run"]
+    mask = cv2.imread(str(tmp_path / "out_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert mask[:, :640].sum() > 5000 and mask[:, 640:].sum() > 5000
