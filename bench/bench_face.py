@@ -1,9 +1,10 @@
-"""Benchmark of the face stage: landmark fit (target <= 200 ms on 2 cores) and detection.
+"""Benchmark of the face stage: landmark fit (target <= 200 ms on 2 cores) and the face chain.
 
 Usage: python bench/bench_face.py [--repeats N] [--threads T]
 Prints one JSON line: median / p90 wall milliseconds (and median process CPU ms, which a
 busy machine does not inflate) of fit_face on synthetic 68-landmark inputs
-(1 px noise, random identity, pose within +-30 degrees) and of detect_face on a sample photo.
+(1 px noise, random identity, pose within +-30 degrees) and of find_face (face detector +
+face mesh, relightcli.nets.face_mesh) on the whole of a sample photo.
 """
 
 from __future__ import annotations
@@ -48,18 +49,21 @@ def bench_fit(model, repeats: int):
     return times, cpu, iterations
 
 
-def bench_detect(model, repeats: int):
-    from relightcli.geometry.face_detect import detect_face
-    from relightcli.io.images import read_image
+def bench_detect(repeats: int):
+    import numpy as np
+
+    from relightcli.io.images import linear_to_srgb, read_image
+    from relightcli.nets.face_mesh import FaceDetector, FaceMesh, find_face
 
     photo = REPO / ".." / "shared" / "data" / "photos" / "pexels_woman_with_dog.jpg"
     if not photo.is_file():
         return None, None
-    image = read_image(photo).rgb
+    image = np.clip(linear_to_srgb(read_image(photo).rgb), 0.0, 1.0).astype(np.float32)
+    detector, mesh = FaceDetector(threads=1), FaceMesh(threads=1)
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        detect_face(image, model=model)
+        find_face(image, None, detector, mesh)
         times.append(time.perf_counter() - start)
     return times, image.shape[:2]
 
@@ -89,7 +93,7 @@ def main(argv=None) -> None:
     load_ms = 1e3 * (time.perf_counter() - start)
     bench_fit(model, 3)  # warm-up
     fit_times, fit_cpu, iterations = bench_fit(model, args.repeats)
-    detect_times, shape = bench_detect(model, max(3, args.repeats // 10))
+    detect_times, shape = bench_detect(max(3, args.repeats // 10))
     report = {"threads": args.threads, "model_load_ms": round(load_ms, 1),
               "fit": {**_summary(fit_times), "cpu_median_ms": _summary(fit_cpu)["median_ms"],
                       "repeats": args.repeats,

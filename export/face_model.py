@@ -22,9 +22,6 @@ What is kept (see the ICT FaceKit README for the vertex ranges):
   36-41 / 42-47 eyes (outer corner first, clockwise in the image), 48-59 outer lip contour
   (48 and 54 the mouth corners), 60-67 inner lip contour. The script checks this order by
   geometry on the neutral mesh (mirror pairs, ordering along x and y) before writing.
-- a face-detector cascade: OpenCV's LBP frontal-face cascade (the copy scikit-image ships as
-  skimage/data/lbpcascade_frontalface_opencv.xml; its misspelt `featuhreParams` tag fixed), as
-  text, because the installed OpenCV 5 wheel no longer bundles `cv2.data.haarcascades`.
 
 Units: centimetres, model frame +X to the subject's left (image right in a frontal view), +Y up,
 +Z out of the face. The file is a plain zip of .npy members written with fixed timestamps, so the
@@ -53,8 +50,6 @@ HEAD_NECK_VERTICES = 11248    # ICT range 9409..11247: head and neck
 DEFAULT_IDENTITY_MODES = 40
 MIN_EXPRESSION_MOTION = 0.01  # cm: modes moving no kept vertex farther are dropped
 ICT_LICENSE = "MIT License, Copyright (c) 2020 USC Institute for Creative Technologies"
-CASCADE_LICENSE = ("OpenCV lbpcascade_frontalface (OpenCV data, BSD-3-Clause / Intel License "
-                   "Agreement for Open Source Computer Vision Library), via scikit-image")
 LANDMARK_NAMES = (
     [f"jaw_{k:02d}" for k in range(17)]
     + [f"brow_right_{k}" for k in range(5)] + [f"brow_left_{k}" for k in range(5)]
@@ -145,20 +140,6 @@ def check_landmarks(neutral, landmarks) -> None:
         raise ValueError("ICT landmark set is not in iBUG-68 order: " + ", ".join(problems))
 
 
-def load_cascade_text() -> str:
-    """OpenCV's LBP frontal-face cascade XML, from scikit-image's data folder."""
-    try:
-        import skimage.data
-    except ImportError as error:
-        raise MissingDependencyError("scikit-image is needed to export the face detector",
-                                     fix="pip install scikit-image") from error
-    path = Path(skimage.data.__file__).parent / "lbpcascade_frontalface_opencv.xml"
-    if not path.is_file():
-        raise MissingDependencyError("face cascade not found", path=path,
-                                     fix="reinstall scikit-image")
-    return path.read_text().replace("featuhreParams", "featureParams")
-
-
 def build_arrays(data, landmarks, identity_modes: int) -> dict:
     """The arrays of the shipped model, as a name -> ndarray dict."""
     neutral = data["neutral_vertices"].astype(np.float64)[:HEAD_NECK_VERTICES]
@@ -190,8 +171,6 @@ def build_arrays(data, landmarks, identity_modes: int) -> dict:
         "license": np.array(ICT_LICENSE),
         "source": np.array("ICT-VGL/ICT-FaceKit FaceXModel (commit da5f95a607f5), "
                            "Face Model Light; vertices 0..11247, holes fan-filled"),
-        "detector_cascade": np.array(load_cascade_text()),
-        "detector_license": np.array(CASCADE_LICENSE),
     }
 
 

@@ -41,8 +41,6 @@ def dynamic_axes(contract: IOContract) -> dict[str, dict[int, str]]:
     axes = {}
     for t in contract.inputs + contract.outputs:
         dims = {k: d for k, d in enumerate(t.shape) if d in SYMBOLIC_DIMS}
-        if not contract.dynamic_hw:
-            dims = {k: d for k, d in dims.items() if d == "N"}
         if dims:
             axes.setdefault(t.name, {}).update(dims)
     return axes
@@ -88,15 +86,13 @@ def export_onnx(net: torch.nn.Module, path: str | Path, height: int = 256, width
                 opset: int = OPSET, extra: dict | None = None) -> dict:
     """Export `net` (with `io_contract()`) to `path`; returns its manifest entry.
 
-    height, width: the trace size (ignored for a net whose contract fixes its input size).
+    height, width: the trace size.
     extra: fields merged into the entry (training_data, metrics, ...).
     """
     if opset < 17:
         raise ValueError(f"opset must be >= 17, got {opset}")
     path = Path(path)
     contract = net.io_contract()
-    if not contract.dynamic_hw:  # a fixed-size net is traced at its own size
-        height, width = contract.inputs[0].shape[2:]
     net = net.eval()
     feeds = person_like_inputs(contract, height, width)
     args = tuple(torch.from_numpy(feeds[t.name]) for t in contract.inputs)

@@ -41,6 +41,7 @@ class Frame:
     shading: np.ndarray | None = None  # (R, R, 3) final shading under env
     relit_crop: np.ndarray | None = None  # (R, R, 3) albedo * shading, linear
     people: list = field(default_factory=list)  # relightcli.nets.pose.Person found in the photo
+    portrait_mask: np.ndarray | None = None  # (H, W) selfie segmentation when only a face was found
     face_fit: object | None = None  # relightcli.geometry.face.FaceFit, when the face stage found a face
     face_crop: object | None = None  # its relightcli.geometry.face.CropRect in the working crop
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
@@ -77,11 +78,13 @@ class Models:
             from relightcli.nets.geometry import AONet, GeometryNet
             from relightcli.nets.pose import PersonDetector, PoseLandmarker
             from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
+            from relightcli.nets.selfie import SelfieSegmenter
 
             classes = {"geometry": GeometryNet, "ao": AONet, "delight": DelightNet,
                        "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
                        "person_detector": PersonDetector, "pose_landmarks": PoseLandmarker,
-                       "face_detector": FaceDetector, "face_mesh": FaceMesh}
+                       "face_detector": FaceDetector, "face_mesh": FaceMesh,
+                       "selfie_segmentation": SelfieSegmenter}
             self._sessions[family] = classes[family](threads=self.threads)
         return self._sessions[family]
 
@@ -89,9 +92,12 @@ class Models:
 def stage_people(frame: Frame, options, models: Models) -> None:
     """Every person in the photo: BlazePose's person detector, then per person the landmark net
     (33 keypoints, 33 metric world landmarks, a segmentation) in a crop turned upright
-    (relightcli.nets.pose), on the photo as sRGB. The report lists who was found and who the
-    landmark net turned down."""
+    (relightcli.nets.pose), on the photo as sRGB. When no body is found but the face detector
+    and face mesh find a face in the whole photo (a close portrait: head and shoulders), the
+    selfie segmentation gives that person's mask. The report lists who was found, who the
+    landmark net turned down, and the portrait fallback when it ran."""
     from relightcli.io.images import linear_to_srgb
+    from relightcli.nets.face_mesh import find_face
     from relightcli.nets.pose import find_people
 
     srgb = np.clip(linear_to_srgb(np.nan_to_num(frame.image)), 0.0, 1.0).astype(np.float32)
@@ -99,12 +105,21 @@ def stage_people(frame: Frame, options, models: Models) -> None:
     frame.people = [p for p in people if p.found]
     frame.notes["people"] = {"found": [p.summary() for p in frame.people],
                              "turned_down": [p.summary() for p in people if not p.found]}
+    if frame.people:
+        return
+    face, why = find_face(srgb, None, models.get("face_detector"), models.get("face_mesh"))
+    if face is None:
+        frame.notes["people"]["portrait"] = f"no body and no face: {why}"
+        return
+    frame.portrait_mask = models.get("selfie_segmentation").segment(srgb)
+    frame.notes["people"]["portrait"] = {"face": face.summary(), "mask": "selfie segmentation"}
 
 
 def stage_mask(frame: Frame, options, models: Models) -> None:
     """The person mask when the input brought none: the union of the people's segmentations
-    (soft, the hair's edge included), its edges pulled to the photo's by a guided filter in the
-    crop around everyone (compose.snap_mask). No person: the item fails, nothing is written.
+    (soft, the hair's edge included), or a portrait's selfie segmentation, its edges pulled to
+    the photo's by a guided filter in the crop around everyone (compose.snap_mask). No person:
+    the item fails, nothing is written.
 
     Measured (python bench/mask_iou.py, mean / worst IoU with the true mask): on the 17 of 20
     validation scenes where a person is found, 0.938 / 0.826 raw, 0.942 / 0.830 with the
@@ -114,17 +129,20 @@ def stage_mask(frame: Frame, options, models: Models) -> None:
     0.903 / 0.758 (COCO skier 0.918 against 0.798)."""
     if frame.mask is not None:
         return
-    if not frame.people:
+    if frame.people:
+        frame.mask = np.max([p.pose.mask for p in frame.people], axis=0)
+        count = len(frame.people)
+        source = f"pose segmentation of {count} {'person' if count == 1 else 'people'}"
+    elif frame.portrait_mask is not None and (frame.portrait_mask > 0.5).any():
+        frame.mask, source = frame.portrait_mask.copy(), "selfie segmentation (a face, no body found)"
+    else:
         raise RelightError("no person found in the photo",
                            fix="pass --mask FILE to say where the person is (white: person)")
-    frame.mask = np.max([p.pose.mask for p in frame.people], axis=0)
     box = compose.person_crop_box(frame.mask, options.resolution)
     snapped = compose.snap_mask(compose.crop_square(frame.image, box), compose.crop_square(frame.mask, box))
     compose.replace_in_box(frame.mask, snapped, box)
     frame.mask = np.clip(frame.mask, 0.0, 1.0)
-    frame.notes["mask"] = {"source": f"pose segmentation of {len(frame.people)} "
-                                     f"{'person' if len(frame.people) == 1 else 'people'}",
-                           "edges": "guided filter"}
+    frame.notes["mask"] = {"source": source, "edges": "guided filter"}
 
 
 def stage_crop(frame: Frame, options, models: Models) -> None:

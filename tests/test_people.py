@@ -62,6 +62,16 @@ def test_two_people_side_by_side_are_both_found(nets):
     assert halves[0] < 0.05 and halves[1] > 0.95  # one person in each half
 
 
+def test_two_rendered_people_are_both_found(nets):
+    render, true_mask = srgb(DATA / "tpose_render.png"), truth(DATA / "tpose_render_mask.png")
+    pair = np.hstack([render, render[:, ::-1]])  # two T-posed people, hands almost touching
+    people = [p for p in find_people(pair, *nets) if p.found]
+    assert len(people) == 2
+    truths = [np.hstack([true_mask, np.zeros_like(true_mask)]), np.hstack([np.zeros_like(true_mask), true_mask[:, ::-1]])]
+    for person_truth in truths:  # each true person is one found person's mask
+        assert max(iou(p.pose.mask > 0.5, person_truth) for p in people) > 0.85
+
+
 def test_a_person_cut_by_the_frame_is_found(nets):
     image, mask = srgb(REPO / "examples" / "skier.jpg"), truth(REPO / "examples" / "skier_mask.png")
     rows = np.flatnonzero(mask.any(axis=1))
@@ -115,3 +125,23 @@ def test_the_report_lists_every_person_and_the_mask_covers_them(tmp_path, capsys
     assert "people" in item["plan"]["run"]
     mask = cv2.imread(str(tmp_path / "out_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
     assert mask[:, :640].sum() > 5000 and mask[:, 640:].sum() > 5000
+
+
+def test_a_close_portrait_without_a_body_is_found_by_its_face(tmp_path, capsys):
+    """Head and shoulders only: the pose detector finds no body, the face detector and face mesh
+    find the face, and the selfie segmentation gives the mask (no legs invented)."""
+    photo = REPO.parent / "shared" / "data" / "photos" / "pexels_portrait_face_paint.png"
+    if not photo.is_file():
+        pytest.skip(f"{photo} not found")
+    crop = tmp_path / "portrait.png"
+    cv2.imwrite(str(crop), cv2.imread(str(photo))[400:1198, 200:700])  # from the brows down to the chest
+    code = main([str(crop), "--hdr", str(HDR), "-o", str(tmp_path / "out.png"), "--outputs", "mask", "--json"])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, item["error"]
+    assert item["stages"]["people"]["found"] == [] and item["stages"]["people"]["portrait"]["face"]
+    assert item["stages"]["mask"]["source"] == "selfie segmentation (a face, no body found)"
+    mask = cv2.imread(str(tmp_path / "out_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert 0.2 < mask.mean() < 0.9
+    x0, y0, x1, y1 = (max(0, int(v)) for v in item["stages"]["people"]["portrait"]["face"]["detection_box_photo"])
+    assert mask[y0:y1, x0:x1].mean() > 0.8  # the face is in it (the painted chest is partly missed)
+

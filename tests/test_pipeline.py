@@ -100,7 +100,7 @@ class StandInModels(Models):
 
     people_disc = None  # (cx, cy, radius) in photo pixels of the stand-in person, or None
 
-    def detect(self, image):
+    def detect(self, image, rect=None):  # the person detector, and the face detector (rect)
         if self.people_disc is None:
             return []
         cx, cy, radius = self.people_disc

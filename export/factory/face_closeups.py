@@ -1,25 +1,29 @@
-"""Training data for the face refinement net, with the runtime's own coarse face shading:
-`python -m export.factory.face_closeups DATA OUT [--workers N]`.
+"""Training data for the face refinement net, with the runtime's own face chain and coarse face
+shading: `python -m export.factory.face_closeups DATA OUT [--workers N]`.
 
 For every sample of the body dataset DATA whose face is visible, the same person, camera and
-lightings are rendered again in the 128x128 face square the runtime would crop (side
-FACE_CROP_MARGIN x the face box's longer side, centred on it), and the runtime's face path
-runs on that close-up as it would on the person crop:
+lighting A are rendered again in a head square around its face (HEAD_CROP_SCALE x the face
+box's longer side, as the runtime's head square is that many times the pose's face landmarks),
+and the runtime's face chain (relightcli.stages.stage_face) runs on it as on a person crop:
 
     photo under A (seen at the person crop's resolution: downsampled to a random side in
-    RUNTIME_SIDE_PX, then enlarged back, as geometry.face.cut_crop enlarges it)
-    -> landmark net -> ICT face model fit (geometry.face; implausible fits are skipped, as at
-    run time) -> the fitted head ray-traced under B ("coarse_face_b", the runtime's effort).
+    RUNTIME_HEAD_PX, then enlarged back, as geometry.face.cut_crop enlarges it)
+    -> face detector + face mesh (relightcli.nets.face_mesh.find_face) -> the 68 landmarks
+    (geometry.face_correspondence) -> ICT face model fit in the 128x128 face crop framed
+    around them (geometry.face.fit_face_to_landmarks; faces outside the person mask and
+    implausible fits are skipped, as at run time)
+    -> the fitted head ray-traced under B ("coarse_face_b", the runtime's effort).
 
-Each OUT sample (export/factory/dataset.py format, 128x128) holds "shading_b" (the truth, the
-refinement target), "coarse_face_b", "body_shading_b" (the body shading the face net gets:
-with `--body-input coarse`, the default, the source sample's runtime coarse shading from
-export.factory.coarse, resampled to the square — samples without it wait for it; with
-`--body-input truth`, the truth seen at the person crop's resolution, far better than any run
-time gives), "face_pixels" (the fitted
-face's pixels, where the runtime blends), "mask", "albedo", "input" (the close-up photo),
-"rect", "exposure"; the metadata keeps the source sample, the fit and the integrator's
-statistics. Deterministic from the source samples; resumable; parallel over processes.
+The close-up is then rendered in that face crop's square, so it is framed as the runtime
+frames faces. Each OUT sample (export/factory/dataset.py format, 128x128) holds "shading_b"
+(the truth, the refinement target), "coarse_face_b", "body_shading_b" (the body shading the
+face net gets: with `--body-input coarse`, the default, the source sample's runtime coarse
+shading from export.factory.coarse, resampled to the square — samples without it wait for
+it; with `--body-input truth`, the truth seen at the person crop's resolution, far better
+than any run time gives), "face_pixels" (the fitted face's pixels, where the runtime blends),
+"mask", "albedo", "input" (the close-up photo), "rect", "exposure"; the metadata keeps the
+source sample, the fit and the integrator's statistics. Deterministic from the source
+samples; resumable; parallel over processes.
 """
 
 from __future__ import annotations
@@ -35,20 +39,22 @@ import cv2
 import numpy as np
 
 from relightcli.errors import RelightError
-from relightcli.geometry.face_detect import FACE_CROP_MARGIN
+from relightcli.nets.face_mesh import HEAD_CROP_SCALE
 
 from . import camera_model, dataset, render, scenes
 
 SIZE = 128
-# Side of the face crop in pixels of the runtime's person crop (at 512: ~35 px faces x 1.6)
-RUNTIME_SIDE_PX = (40, 96)
+# The head square's side: rendered at HEAD_SIZE, seen as the runtime's person crop holds it
+# (at 512: ~35 px faces, face crops of 40-96 px, head squares ~3 / 1.6 times those)
+HEAD_SIZE = 192
+RUNTIME_HEAD_PX = (75, 180)
 FACE_SPP, FACE_TARGET_ERROR = 32, 0.04  # relightcli.layers' defaults
 TRUTH_SPP, TRUTH_TARGET_ERROR = 64, 0.02
 
 
 def closeup_rect(face_box, sample_rect, resolution: int, margin: float) -> tuple:
-    """World square (x0, x1, y0, y1) of the face crop around a sample's face box (pixels
-    x0, y0, x1, y1 of a `resolution` image spanning `sample_rect`)."""
+    """World square (x0, x1, y0, y1) around a sample's face box (pixels x0, y0, x1, y1 of a
+    `resolution` image spanning `sample_rect`), its side `margin` x the box's longer side."""
     x0, x1, y0, y1 = (float(v) for v in sample_rect)
     px = (x1 - x0) / resolution
     bx0, by0, bx1, by1 = (float(v) for v in face_box)
@@ -58,69 +64,116 @@ def closeup_rect(face_box, sample_rect, resolution: int, margin: float) -> tuple
     return (cx - half, cx + half, cy - half, cy + half)
 
 
+def square_in_pixels(square, sample_rect, resolution: int) -> tuple[float, float, float]:
+    """Inverse of `closeup_rect`: (centre x, centre y, side) in pixels of the `resolution`
+    image spanning `sample_rect` of the world square (x0, x1, y0, y1)."""
+    x0, x1, _, y1 = (float(v) for v in sample_rect)
+    px = (x1 - x0) / resolution
+    sx0, sx1, sy0, sy1 = (float(v) for v in square)
+    return ((sx0 + sx1) / 2 - x0) / px, (y1 - (sy0 + sy1) / 2) / px, (sx1 - sx0) / px
+
+
 def runtime_view(image, side: int) -> np.ndarray:
-    """What the face crop looks like when the person crop holds the face square in `side`
-    pixels: area-downsampled to side x side, then enlarged bilinearly back (cut_crop)."""
+    """What a square looks like when the person crop holds it in `side` pixels:
+    area-downsampled to side x side, then enlarged bilinearly back (cut_crop)."""
+    size = image.shape[0]
     small = cv2.resize(image, (side, side), interpolation=cv2.INTER_AREA)
-    return cv2.resize(small, (SIZE, SIZE), interpolation=cv2.INTER_LINEAR).reshape(image.shape)
+    return cv2.resize(small, (size, size), interpolation=cv2.INTER_LINEAR).reshape(image.shape)
 
 
-def body_view(source: dict, box, margin: float) -> np.ndarray | None:
-    """The body shading the face net gets at run time, in the close-up's square: the source
-    sample's ray-traced coarse shading of the reconstructed mesh ("coarse_shading_b", added
-    by export.factory.coarse), or None when it has none (closeup_sample then uses the true
-    shading at the person crop's resolution, far better than any run time gives)."""
-    from export.train.data import crop_resample, face_square
+def body_view(coarse_shading, square, sample_rect) -> np.ndarray | None:
+    """The body shading the face net gets at run time, in the close-up's world square: the
+    source sample's ray-traced coarse shading of the reconstructed mesh ("coarse_shading_b",
+    added by export.factory.coarse, spanning `sample_rect`) resampled to it, or None when
+    there is none (closeup_sample then uses the true shading at the person crop's
+    resolution, far better than any run time gives)."""
+    from export.train.data import crop_resample
 
-    if "coarse_shading_b" not in source:
+    if coarse_shading is None:
         return None
-    cx, cy, square = face_square(box, margin)
-    return crop_resample(source["coarse_shading_b"], cx, cy, square, SIZE)
+    cx, cy, side = square_in_pixels(square, sample_rect, coarse_shading.shape[0])
+    return crop_resample(coarse_shading, cx, cy, side, SIZE)
 
 
-def closeup_sample(person, spec, meta: dict, rect, landmark_net, face_model, rng,
-                   body=None) -> tuple[dict, dict] | None:
+def render_square(person, spec, meta: dict, square, size: int, seed: int, lit_b: bool) -> dict:
+    """The sample's person in the world square `square` at size x size: "photo" (the camera's
+    photo under lighting A), "maps" (render.render_geometry's), "env_b" (lighting B times the
+    exposure) and, when `lit_b`, "shading_b" (the truth under B, exposed)."""
+    settings = render.RenderSettings(resolution=size, spp=TRUTH_SPP, target_error=TRUTH_TARGET_ERROR,
+                                     bounces=meta["settings"]["bounces"],
+                                     hdri_folder=meta["settings"].get("hdri_folder"))
+    scene, geometry, maps, _ = render.render_geometry(person, spec, size, rect=square)
+    env_a, env_b, _, background_env = render.sample_environments(spec, settings)
+    k = np.float32(meta["exposure"])
+    shading_a = render.shade(scene, geometry, env_a, settings, maps["albedo"], seed).mean * k
+    out = {"maps": maps, "env_b": env_b * k}
+    if lit_b:
+        out["shading_b"] = render.shade(scene, geometry, env_b, settings, maps["albedo"], seed + 1).mean * k
+    scene.close()
+    plate = render.background_plate_for(spec, env_a, background_env, size) * k
+    subject = camera_model.fill_edges(maps["albedo"] * shading_a, maps["mask"] > 0)
+    out["photo"] = camera_model.photograph(camera_model.composite(subject, maps["coverage"], plate), 1.0,
+                                           spec.augmentation)
+    return out
+
+
+def runtime_face_fit(seen, mask, front_depth, square, face_nets, face_model):
+    """relightcli.stages.stage_face on a head square seen as the person crop: `seen` (S, S, 3)
+    float32 linear RGB, `mask` (S, S) the person, `front_depth` (S, S) world z, `square` its
+    world rectangle. Returns (FaceFit, info) with the fit in the 128 face crop framed as at
+    run time, or None where the runtime finds no face or skips the fit."""
+    from relightcli.geometry.face import fit_face_to_landmarks
+    from relightcli.geometry.face_correspondence import load_correspondence
+    from relightcli.io.images import linear_to_srgb
+    from relightcli.nets.face_mesh import find_face
+    from relightcli.stages import person_mask_at
+
+    srgb = np.clip(linear_to_srgb(np.nan_to_num(seen)), 0.0, 1.0).astype(np.float32)
+    face, _ = find_face(srgb, None, *face_nets)
+    if face is None:
+        return None
+    landmarks = load_correspondence().landmarks(face.mesh.points[:, :2]) - 0.5  # continuous -> index
+    if person_mask_at(mask, landmarks.mean(axis=0)) < 0.5:
+        return None
+    depth = np.where(mask > 0.5, front_depth, np.nan)
+    fit, info = fit_face_to_landmarks(landmarks, mask.shape, model=face_model, image_rect=square, depth=depth)
+    return None if fit is None else (fit, info)
+
+
+def closeup_sample(person, spec, meta: dict, head_square, face_nets, face_model, rng,
+                   coarse_shading=None, sample_rect=None) -> tuple[dict, dict] | None:
     """(arrays, meta) of one close-up, or None when the runtime would skip the face.
-    body: the body shading input (body_view); None: the truth at the runtime's resolution."""
-    from relightcli.geometry.face import face_landmarks, implausible_fit, render_face_shading
-    from relightcli.geometry.face_detect import CropRect
-    from relightcli.geometry.face_fit import fit_face
+    face_nets: (FaceDetector, FaceMesh); coarse_shading: the source sample's runtime body
+    shading spanning `sample_rect` (body_view); None: the truth at the runtime's resolution."""
+    from relightcli.geometry.face import render_face_shading
     from relightcli.geometry.face_model import rotation_angles_deg
     from relightcli.render.environment import EnvironmentLight
 
-    settings = render.RenderSettings(resolution=SIZE, spp=TRUTH_SPP, target_error=TRUTH_TARGET_ERROR,
-                                     bounces=meta["settings"]["bounces"],
-                                     hdri_folder=meta["settings"].get("hdri_folder"))
-    scene, geometry, maps, _ = render.render_geometry(person, spec, SIZE, rect=rect)
-    env_a, env_b, _, background_env = render.sample_environments(spec, settings)
-    k = np.float32(meta["exposure"])
     seed = 4 * spec.index + 7
-    shading_a = render.shade(scene, geometry, env_a, settings, maps["albedo"], seed).mean * k
-    shading_b = render.shade(scene, geometry, env_b, settings, maps["albedo"], seed + 1).mean * k
-    scene.close()
-    plate = render.background_plate_for(spec, env_a, background_env, SIZE) * k
-    subject = camera_model.fill_edges(maps["albedo"] * shading_a, maps["mask"] > 0)
-    photo = camera_model.photograph(camera_model.composite(subject, maps["coverage"], plate), 1.0,
-                                    spec.augmentation)
-    side = int(rng.integers(RUNTIME_SIDE_PX[0], RUNTIME_SIDE_PX[1] + 1))
-    seen = runtime_view(camera_model.decode_photo(photo), side)
-
-    whole = CropRect(0, 0, SIZE, SIZE)
-    landmarks = face_landmarks(seen, whole, landmark_net)
-    depth = np.where(maps["mask"] > 0, maps["front_depth"], np.nan)
-    fit = fit_face(landmarks, face_model, rect, (SIZE, SIZE), depth=depth)
-    if implausible_fit(fit, landmarks):
+    head_px = int(rng.integers(RUNTIME_HEAD_PX[0], RUNTIME_HEAD_PX[1] + 1))
+    head = render_square(person, spec, meta, head_square, HEAD_SIZE, seed, lit_b=False)
+    seen = runtime_view(camera_model.decode_photo(head["photo"]), head_px)
+    found = runtime_face_fit(seen, head["maps"]["mask"], head["maps"]["front_depth"], head_square,
+                             face_nets, face_model)
+    if found is None:
         return None
+    fit, info = found
+    # the face crop's side in pixels of the runtime's person crop
+    side = max(1, int(round(info["crop"][2] * head_px / HEAD_SIZE)))
+    face = render_square(person, spec, meta, fit.rect, SIZE, seed, lit_b=True)
     yaw, pitch, roll = rotation_angles_deg(fit.rotation)
-    coarse, face_pixels = render_face_shading(fit, EnvironmentLight(env_b * k), spp=FACE_SPP,
+    coarse, face_pixels = render_face_shading(fit, EnvironmentLight(face["env_b"]), spp=FACE_SPP,
                                               target_error=FACE_TARGET_ERROR, seed=seed + 2)
-    body = runtime_view(shading_b, side) if body is None else body
-    arrays = {"shading_b": shading_b, "coarse_face_b": coarse, "body_shading_b": body,
+    body = body_view(coarse_shading, fit.rect, sample_rect)
+    body = runtime_view(face["shading_b"], side) if body is None else body
+    maps = face["maps"]
+    arrays = {"shading_b": face["shading_b"], "coarse_face_b": coarse, "body_shading_b": body,
               "face_pixels": face_pixels.astype(np.float32), "mask": maps["mask"], "albedo": maps["albedo"],
-              "input": photo, "rect": np.asarray(rect, np.float32), "exposure": k}
+              "input": face["photo"], "rect": np.asarray(fit.rect, np.float32), "exposure": np.float32(meta["exposure"])}
     record = {"source": {"split": spec.split, "id": spec.sample_id}, "spec": spec.as_dict(),
-              "runtime_side_px": side, "fit": {"residual_px": round(fit.residual_px, 3),
-                                               "angles_deg": [round(a, 2) for a in (yaw, pitch, roll)]}}
+              "runtime_head_px": head_px, "runtime_side_px": side,
+              "fit": {"residual_px": round(fit.residual_px, 3),
+                      "angles_deg": [round(a, 2) for a in (yaw, pitch, roll)]}}
     return arrays, record
 
 
@@ -131,9 +184,9 @@ def _worker_init():
     for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[name] = "1"
     from relightcli.geometry.face_model import FaceModel
-    from relightcli.nets.landmarks import LandmarkNet
+    from relightcli.nets.face_mesh import FaceDetector, FaceMesh
 
-    _STATE.update(net=LandmarkNet(threads=1), model=FaceModel.load())
+    _STATE.update(nets=(FaceDetector(threads=1), FaceMesh(threads=1)), model=FaceModel.load())
 
 
 def render_person(data_root: str, out_root: str, split: str, ids: list[str], body_input: str = "coarse") -> list[str]:
@@ -141,19 +194,18 @@ def render_person(data_root: str, out_root: str, split: str, ids: list[str], bod
     from .person import build_person
 
     data, person, written = dataset.open_dataset(data_root), None, []
-    margin = FACE_CROP_MARGIN
     for sample_id in ids:
         meta = data.meta(split, sample_id)
         box, rect = data.load_raw(split, sample_id, "face_box"), data.load_raw(split, sample_id, "rect")
         spec = scenes.spec_from_dict(meta["spec"])
         person = person or build_person(spec.person_seed, split)
-        resolution = meta["settings"]["resolution"]
-        square = closeup_rect(box, rect, resolution, margin)
+        head_square = closeup_rect(box, rect, meta["settings"]["resolution"], HEAD_CROP_SCALE)
         rng = np.random.default_rng([spec.index, dataset.SPLITS.index(split), 11])
-        body = body_view(data.load(split, sample_id), box, margin) if body_input == "coarse" else None
-        if body_input == "coarse" and body is None:
+        coarse_shading = data.load(split, sample_id).get("coarse_shading_b") if body_input == "coarse" else None
+        if body_input == "coarse" and coarse_shading is None:
             continue  # its coarse shading is not there yet: a later run does it
-        result = closeup_sample(person, spec, meta, square, _STATE["net"], _STATE["model"], rng, body)
+        result = closeup_sample(person, spec, meta, head_square, _STATE["nets"], _STATE["model"], rng,
+                                coarse_shading, rect)
         if result is None:
             continue
         arrays, record = result
@@ -184,7 +236,8 @@ def run(data_root, out_root, splits=dataset.SPLITS, workers: int = 1, limit: int
         body_input: str = "coarse") -> dict:
     card = {"name": "relightcli face refinement close-ups", "source": str(data_root), "size": SIZE,
             "body_input": body_input,
-            "runtime_side_px": list(RUNTIME_SIDE_PX), "face_effort": [FACE_SPP, FACE_TARGET_ERROR],
+            "head_crop_scale": HEAD_CROP_SCALE, "head_size": HEAD_SIZE,
+            "runtime_head_px": list(RUNTIME_HEAD_PX), "face_effort": [FACE_SPP, FACE_TARGET_ERROR],
             "truth_effort": [TRUTH_SPP, TRUTH_TARGET_ERROR],
             "command": "python -m export.factory.face_closeups " + " ".join(sys.argv[1:])}
     dataset.write_card(out_root, card)

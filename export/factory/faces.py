@@ -1,4 +1,5 @@
-"""Synthetic face crops with exact 68-point landmarks, for the landmark net (issue 6).
+"""Synthetic face crops with exact 68-point landmarks (issue 6), on which
+`python -m export.face_correspondence` measures the face mesh -> iBUG table.
 
 One sample = the shipped ICT face model (`models/face_model.npz`) with random identity,
 expression, head pose and look (`face_look.py`), lit by an environment map, framed in a
@@ -12,8 +13,8 @@ Shape and pose
   them to [0, 1] with prior sigma 0.5: sparse and rare);
 - pose: yaw U(-40, 40), pitch U(-25, 25), roll U(-20, 20) degrees (`rotation_matrix`).
 Framing: the crop's side is `crop_scale` x the larger side of the landmarks' bounding box,
-its centre shifted by `crop_shift` x the side; both ranges cover what the OpenCV cascade +
-`face_crop_rect` produce (measured, see FRAMING).
+its centre shifted by `crop_shift` x the side; both ranges cover what the former OpenCV
+cascade + `face_crop_rect` produced (measured, see FRAMING).
 
 Lighting: the split's HDRIs (`lighting.hdri_splits`: test lighting never seen in training)
 or a procedural sun + sky (25 %), area-resampled to 128 x 256, turned about +Y by any angle
@@ -59,11 +60,12 @@ IDENTITY_CLIP = 2.5
 EXPRESSION_FREE = 0.3                     # share of samples with no expression at all
 LIGHT_TILT_DEG = 20.0
 # Framing of the crop around the landmarks' bounding box: side = scale x its larger side,
-# centre moved by (shift x, shift y) x side (x right, y up). Covers the cascade +
-# face_crop_rect framing measured on renders (bench/face_framing.py, 40 renders: scale
+# centre moved by (shift x, shift y) x side (x right, y up). Covers the former cascade +
+# face_crop_rect framing measured on renders (40 renders: scale
 # 1.73-2.39, median 2.11; shift x -0.12..0.11, y 0.04..0.12: the box includes the forehead).
 FRAMING = {"scale": (1.6, 2.6), "shift_x": (-0.13, 0.13), "shift_y": (-0.03, 0.16)}
-# The framing the runtime re-crops to once it has landmarks (the measured median)
+# The framing of the runtime's face crop around landmarks (the measured median;
+# relightcli.geometry.face.face_box_around)
 CANONICAL_FRAMING = {"scale": 2.1, "shift": (0.0, 0.08)}
 # Faces in a full-body crop span only 25-60 px before face_crop_rect enlarges them to 128
 LOW_RES_PROBABILITY = 0.5
@@ -299,11 +301,3 @@ def _box_filter(values) -> np.ndarray:
     (row-major, flattened) per-ray values."""
     blocks = np.asarray(values, np.float32).reshape(CROP, SUPERSAMPLE, CROP, SUPERSAMPLE)
     return blocks.mean(axis=(1, 3))
-
-
-def interocular_px(landmarks) -> np.ndarray:
-    """(...,) distance between the outer eye corners (iBUG 36 and 45): the NME normaliser
-    of 300-W. landmarks (..., 68, 2)."""
-    landmarks = np.asarray(landmarks)
-    return np.linalg.norm(landmarks[..., 36, :] - landmarks[..., 45, :], axis=-1)
-

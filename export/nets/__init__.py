@@ -1,5 +1,5 @@
 """Torch definitions of the relighting nets, one module per family, each with a "paper" and a
-"small" config (the landmark net, not in the paper, has "small" and "regression_small"). `build_net(family, size)` is the single factory the exporter and trainers use."""
+"small" config. `build_net(family, size)` is the single factory the exporter and trainers use."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from .body_refine import BODY_REFINE_CONFIGS, BodyRefineNet
 from .delight import DELIGHT_CONFIGS, DelightNet
 from .face_refine import FACE_REFINE_CONFIGS, FaceRefineNet
 from .geometry import AO_CONFIGS, GEOMETRY_CONFIGS, AONet, GeometryNet
-from .landmarks import LANDMARK_CONFIGS, LandmarkNet
 
 FAMILIES = {
     "geometry": (GeometryNet, GEOMETRY_CONFIGS),
@@ -17,14 +16,13 @@ FAMILIES = {
     "delight": (DelightNet, DELIGHT_CONFIGS),
     "body_refine": (BodyRefineNet, BODY_REFINE_CONFIGS),
     "face_refine": (FaceRefineNet, FACE_REFINE_CONFIGS),
-    "landmarks": (LandmarkNet, LANDMARK_CONFIGS),
 }
 
 
 def build_net(family: str, size: str = "paper") -> nn.Module:
     """A freshly initialised net of `family` ("geometry", "ao", "delight", "body_refine",
-    "face_refine", "landmarks") at config `size` ("paper", "small", or an ablation name:
-    "vanilla", ... for "delight", "regression_small" for "landmarks", which has no paper size)."""
+    "face_refine") at config `size` ("paper", "small", or an ablation name: "vanilla", ... for
+    "delight")."""
     if family not in FAMILIES:
         raise ValueError(f"unknown net family {family!r}; known: {sorted(FAMILIES)}")
     cls, configs = FAMILIES[family]

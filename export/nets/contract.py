@@ -28,7 +28,6 @@ class IOContract:
     multiple: int
     colour_space: str
     normalisation: str
-    dynamic_hw: bool = True
     config: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:

@@ -2,7 +2,6 @@
 
     python -m export.train NET --config export/train/configs/NET_small.json --data DIR --out RUN
     python -m export.train all --size small --data DIR --out RUNS [--export-to models/]
-    python -m export.train landmarks --data FACES --out RUN   # FACES: export.factory.face_dataset
 """
 
 from __future__ import annotations
@@ -11,30 +10,26 @@ import argparse
 import sys
 from pathlib import Path
 
-from export.train.config import (ALL_NETS, TRAINABLE_NETS, ConfigError, default_config_path, load_config,
+from export.train.config import (ALL_NETS, ConfigError, default_config_path, load_config,
                                  merge_overrides)
 from export.train.trainer import Trainer, TrainingError
 from relightcli.errors import RelightError
 
 
 def open_dataset(root):
-    """The dataset at `root`: the landmark shards when it holds a face card
-    (export.factory.face_dataset), else the relighting dataset (export.factory.dataset);
-    imported late so `--help` works without them."""
+    """The relighting dataset at `root` (export.factory.dataset); imported late so `--help`
+    works without it."""
     try:
-        from export.factory import face_dataset
         from export.factory.dataset import open_dataset as factory_open
     except ImportError as exc:
         raise TrainingError(f"cannot import export.factory ({exc}); the data factory is needed "
                             "to read --data") from exc
-    if (Path(root) / face_dataset.CARD_NAME).is_file():
-        return face_dataset.open_face_dataset(root)
     return factory_open(root)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m export.train", description=__doc__.splitlines()[0])
-    parser.add_argument("net", choices=list(TRAINABLE_NETS) + ["all"], help="the net to train, or all of them in turn")
+    parser.add_argument("net", choices=list(ALL_NETS) + ["all"], help="the net to train, or all of them in turn")
     parser.add_argument("--config", help="JSON config (one net only; default configs/NET_SIZE.json)")
     parser.add_argument("--size", default="small", help="config size for the default configs: small or paper")
     parser.add_argument("--data", required=True, help="dataset root (export.factory output)")

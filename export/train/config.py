@@ -15,9 +15,6 @@ from export.nets import FAMILIES
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ALL_NETS = ("geometry", "ao", "delight", "body_refine", "face_refine")
-# Trained on its own dataset (export/factory/face_dataset.py), so not part of `all`
-LANDMARK_NET = "landmarks"
-TRAINABLE_NETS = ALL_NETS + (LANDMARK_NET,)
 
 # The paper's loss weights (DESIGN.md); the configs repeat them so a run records what it used.
 PAPER_LOSS = {
@@ -26,7 +23,6 @@ PAPER_LOSS = {
     "delight": {"l1": 500.0, "perceptual": 100.0, "light": 0.025},
     "body_refine": {"l1": 10.0, "adversarial": 1.0, "fft": 0.001},
     "face_refine": {"l1": 5.0, "adversarial": 1.0},
-    "landmarks": {"l1": 1.0},  # not in the paper: L1 on the landmark pixels
 }
 # Terms of our own, off unless a config weights them: the delight net's SH-9 irradiance of its
 # light against the true input shading (export.train.tasks.DelightTask)

@@ -372,35 +372,7 @@ class FaceRefineTask(GANTask):
                 "face_psnr_body": psnr_b, "face_psnr_gain_over_body": psnr_r - psnr_b}
 
 
-def interocular(landmarks):
-    """Distance between the outer eye corners (iBUG 36 and 45), the 300-W NME normaliser;
-    works on (..., 68, 2) numpy arrays and torch tensors."""
-    return ((landmarks[..., 36, :] - landmarks[..., 45, :]) ** 2).sum(-1) ** 0.5
-
-
-class LandmarkTask(Task):
-    """Face crop (128x128, linear) -> 68 landmarks (col, row pixels), on the landmark
-    dataset (export/factory/face_dataset.py). Loss: L1 on the pixel coordinates.
-    Metrics: mean point-to-point error in pixels, the same normalised by the inter-ocular
-    distance (NME, 300-W), and the share of faces with NME > 0.1 (failures)."""
-
-    family = "landmarks"
-    input_keys = ("image",)
-
-    def example(self, sample, rng):
-        return {"image": chw(sample["image"]), "landmarks": np.asarray(sample["landmarks"], np.float32)}
-
-    def losses(self, out, batch):
-        return {"landmarks_l1": self.w["l1"] * (out["landmarks"] - batch["landmarks"]).abs().mean()}
-
-    def metrics(self, out, example):
-        error = np.linalg.norm(out["landmarks"] - example["landmarks"], axis=-1).mean()
-        nme = float(error / interocular(example["landmarks"]))
-        return {"error_px": float(error), "nme": nme, "failure_rate_nme_0.1": float(nme > 0.1)}
-
-
-TASKS = {t.family: t for t in (GeometryTask, AOTask, DelightTask, BodyRefineTask, FaceRefineTask,
-                               LandmarkTask)}
+TASKS = {t.family: t for t in (GeometryTask, AOTask, DelightTask, BodyRefineTask, FaceRefineTask)}
 
 
 def make_task(config: TrainConfig) -> Task:

@@ -10,13 +10,8 @@ parts live in
   camera helpers (DESIGN.md pixel convention);
 - face_fit.py: regularised Gauss-Newton fit of identity, expression and pose to 68 landmarks
   (optional weights, robust loss, optional depth), and the fitted mesh;
-- face_detect.py: the 128x128 face crop rectangle (and the OpenCV cascade detection);
+- face_detect.py: the 128x128 face crop rectangle;
 - face_correspondence.py: the 468 -> 68 table.
-
-`fit_face_in_crop` (cascade + the 68-landmark net, relightcli/nets/landmarks.py, run twice:
-on the detector's crop, then on a crop re-centred on the first landmarks with the framing the
-net was trained around, CANONICAL_*) is the path this replaced; only the export side
-(export/factory/face_closeups.py, export/landmark_eval.py) still runs it.
 """
 
 from __future__ import annotations
@@ -24,7 +19,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from relightcli.geometry.face_detect import FACE_CROP_MARGIN, CropRect, FaceBox, detect_face, face_crop_rect
+from relightcli.geometry.face_detect import FACE_CROP_MARGIN, CropRect, FaceBox, face_crop_rect
 from relightcli.geometry.face_fit import FaceFit, face_mesh, fit_face
 from relightcli.geometry.face_model import (
     FaceModel,
@@ -35,23 +30,23 @@ from relightcli.geometry.face_model import (
     world_to_pixel,
 )
 
-# Framing of the second landmark pass: side = scale x the larger side of the landmarks' box,
-# centre shifted up by shift x side (the median framing of the detector + face_crop_rect on
-# synthetic renders, export/factory/faces.py CANONICAL_FRAMING)
+# Framing of the face crop around the landmarks: side = scale x the larger side of the
+# landmarks' box, centre shifted up by shift x side (export/factory/faces.py
+# CANONICAL_FRAMING: the framing the face refinement net's first close-ups were cut with)
 CANONICAL_SCALE = 2.1
 CANONICAL_SHIFT_UP = 0.08
 # A fit whose weighted RMS landmark residual (pixels of the 128 crop) exceeds this does not
-# explain its landmarks: skipped. Measured: synthetic test faces p99 0.86 px (max 1.05), two
-# real photos 1.6-1.9, scattered points ~30. It is no face verifier: the net draws a
-# face-shaped layout on any crop (1.0-3.7 px on crops of clothes and background); finding
-# the face is the detector's job.
+# explain its landmarks: skipped. Measured with the former 68-landmark net: synthetic test
+# faces p99 0.86 px (max 1.05), two real photos 1.6-1.9, scattered points ~30. It is no face
+# verifier (a face-shaped layout on clothes fitted to 1.0-3.7 px); finding the face is the
+# detector's job.
 MAX_RESIDUAL_PX = 4.0
 # Poses beyond the training range (yaw 40, pitch 25 degrees) with some margin, and faces
 # whose landmarks span less than this share of the crop, are not trusted
 MAX_ABS_YAW_DEG, MAX_ABS_PITCH_DEG = 60.0, 45.0
 MIN_FACE_SHARE = 0.2
-# Landmark noise the fit assumes (pixels of the 128 crop), chosen on the validation split:
-# 0.5 / 1 / 2 / 3 px gave median head-rotation errors of 3.73 / 3.72 / 3.68 / 3.61 degrees and
+# Landmark noise the fit assumes (pixels of the 128 crop), chosen on the validation split of
+# the former 68-landmark net's face renders: 0.5 / 1 / 2 / 3 px gave median head-rotation errors of 3.73 / 3.72 / 3.68 / 3.61 degrees and
 # p90 7.1 / 6.9 / 6.7 / 6.6 (the net's mean landmark error there is 1.4 px); 2 is near the
 # net's error and keeps the fit residual meaningful
 LANDMARK_SIGMA_PX = 2.0
@@ -127,39 +122,17 @@ def image_to_crop(points, crop: CropRect) -> np.ndarray:
     return (np.asarray(points, np.float64) - np.array([crop.left, crop.top]) + 0.5) / s - 0.5
 
 
-def canonical_crop(landmarks_image, resolution: int) -> CropRect:
-    """The square the landmark net saw most often around landmarks (N, 2) in image pixels."""
-    lo, hi = landmarks_image.min(axis=0), landmarks_image.max(axis=0)
-    side = max(1, int(round(CANONICAL_SCALE * float(np.max(hi - lo)))))
-    cx = (lo[0] + hi[0]) / 2.0
-    cy = (lo[1] + hi[1]) / 2.0 - CANONICAL_SHIFT_UP * side  # rows grow downward
-    return CropRect(left=int(round(cx + 0.5 - side / 2.0)), top=int(round(cy + 0.5 - side / 2.0)),
-                    size=side, resolution=resolution)
-
-
-def face_landmarks(image, crop: CropRect, landmark_net, passes: int = 2) -> np.ndarray:
-    """(68, 2) float64 landmarks in pixels of `crop` (face_crop_rect's): the net on that
-    crop, then (passes - 1) times on the canonical re-crop around its last answer."""
-    image = np.asarray(image, np.float32)
-    points = crop_to_image(landmark_net.predict(cut_crop(image, crop)), crop)
-    for _ in range(passes - 1):
-        again = canonical_crop(points, crop.resolution)
-        points = crop_to_image(landmark_net.predict(cut_crop(image, again)), again)
-    return image_to_crop(points, crop)
-
-
 def face_box_around(landmarks) -> FaceBox:
     """The face box whose `face_crop_rect` frames the (68, 2) landmarks (pixels) as the
     face refinement net saw faces in training: the square side CANONICAL_SCALE x the
     landmarks' larger extent, centred CANONICAL_SHIFT_UP x that side above their box's
-    centre (the cascade's median framing, which the closeups were cut with)."""
+    centre."""
     lo, hi = np.min(landmarks, axis=0), np.max(landmarks, axis=0)
     side = CANONICAL_SCALE * float(np.max(hi - lo)) / FACE_CROP_MARGIN
     cx = (lo[0] + hi[0]) / 2.0
     cy = (lo[1] + hi[1]) / 2.0 - CANONICAL_SHIFT_UP * side * FACE_CROP_MARGIN  # rows grow downward
     # +0.5: face_crop_rect takes the box in edge coordinates, the landmarks are pixel centres
-    return FaceBox(left=cx + 0.5 - side / 2.0, top=cy + 0.5 - side / 2.0, width=side, height=side,
-                   angle=0.0, neighbours=0)
+    return FaceBox(left=cx + 0.5 - side / 2.0, top=cy + 0.5 - side / 2.0, width=side, height=side)
 
 
 def fit_face_to_landmarks(landmarks, crop_shape, *, model: FaceModel | None = None,
@@ -191,44 +164,6 @@ def fit_face_to_landmarks(landmarks, crop_shape, *, model: FaceModel | None = No
                 residual_px=round(fit.residual_px, 2),
                 angles_deg=[round(yaw, 1), round(pitch, 1), round(roll, 1)])
     problem = implausible_fit(fit, local, max_residual_px)
-    if problem:
-        info["skipped"] = f"{problem}: face stage skipped"
-        return None, info
-    return fit, info
-
-
-def fit_face_in_crop(image_crop, mask_crop, landmark_net, *, model: FaceModel | None = None,
-                     image_rect=PERSON_CROP_RECT, depth=None, passes: int = 2,
-                     landmark_sigma_px: float = LANDMARK_SIGMA_PX,
-                     max_residual_px: float = MAX_RESIDUAL_PX):
-    """Detect the face in the person crop, regress its landmarks, fit the face model.
-
-    image_crop (R, R, 3) float32 linear RGB; mask_crop (R, R) person alpha or None;
-    landmark_net: relightcli.nets.landmarks.LandmarkNet; image_rect: the crop's world
-    rectangle (x0, x1, y0, y1), by default the working crop's [-1, 1]^2; depth: optional
-    (R, R) world z of the visible surface (e.g. the geometry net's front depth), which
-    places the face along z. Returns (FaceFit, info) with the fit in the face crop's frame
-    (`fit.rect`, 128x128: `info["crop"]` = [left, top, size, resolution] in pixels of the
-    person crop), or (None, info) with info["skipped"] saying why (no face, too small, a fit
-    that does not explain the landmarks).
-    """
-    model = model or FaceModel.load()
-    box, reason = detect_face(image_crop, mask_crop, model=model)
-    if box is None:
-        return None, {"skipped": reason}
-    crop = face_crop_rect(box, resolution=landmark_net.crop_size)
-    info = {"box": [round(float(v), 1) for v in (box.left, box.top, box.width, box.height)],
-            "crop": [crop.left, crop.top, crop.size, crop.resolution]}
-    landmarks = face_landmarks(image_crop, crop, landmark_net, passes)
-    rect = crop.world_rect(image_rect, np.shape(image_crop))
-    face_depth = None if depth is None else cut_crop(np.asarray(depth, np.float32), crop)
-    fit = fit_face(landmarks, model, rect, (crop.resolution, crop.resolution), depth=face_depth,
-                   landmark_sigma_px=landmark_sigma_px)
-    yaw, pitch, roll = rotation_angles_deg(fit.rotation)
-    info.update(landmarks=int(landmarks.shape[0]), inliers=int(fit.inliers.sum()),
-                residual_px=round(fit.residual_px, 2),
-                angles_deg=[round(yaw, 1), round(pitch, 1), round(roll, 1)])
-    problem = implausible_fit(fit, landmarks, max_residual_px)
     if problem:
         info["skipped"] = f"{problem}: face stage skipped"
         return None, info
@@ -286,8 +221,8 @@ def _face_pixels(scene, fit: FaceFit, size: int) -> np.ndarray:
     return ((prim >= 0) & on_face[np.maximum(prim, 0)]).reshape(size, size)
 
 
-__all__ = ["CropRect", "FaceBox", "FaceFit", "FaceModel", "canonical_crop", "crop_to_image",
-           "cut_crop", "detect_face", "face_blend_weight", "face_crop_rect", "face_landmarks",
-           "face_box_around", "face_mesh", "fit_face", "fit_face_in_crop", "fit_face_to_landmarks", "image_to_crop", "implausible_fit", "paste_crop",
+__all__ = ["CropRect", "FaceBox", "FaceFit", "FaceModel", "crop_to_image", "cut_crop",
+           "face_blend_weight", "face_box_around", "face_crop_rect", "face_mesh", "fit_face",
+           "fit_face_to_landmarks", "image_to_crop", "implausible_fit", "paste_crop",
            "pixel_to_world", "render_face_shading", "rotation_angles_deg", "rotation_matrix",
            "transform", "world_to_pixel"]

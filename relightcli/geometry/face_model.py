@@ -32,7 +32,7 @@ _FIX_MISSING = ("build it with `python -m export.face_model` (needs ../shared/da
                 "or reinstall the models directory")
 _REQUIRED = ("format_version", "neutral_vertices", "triangles", "face_region", "identity_basis",
              "identity_names", "expression_basis", "expression_names", "landmark_indices",
-             "license", "detector_cascade")
+             "license")
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,7 +42,7 @@ class FaceModel:
     neutral (V, 3) float32 cm; triangles (F, 3) int32, outward winding; face_region (V,) bool
     (the face proper, without the back of the head and the neck); identity_basis (K, V, 3) and
     expression_basis (E, V, 3) float32 cm per unit coefficient; landmark_indices (68,) int32
-    vertices in iBUG-68 order; detector_cascade: OpenCV cascade XML text; sha256 of the file.
+    vertices in iBUG-68 order; sha256 of the file.
     """
 
     path: Path
@@ -56,7 +56,6 @@ class FaceModel:
     expression_names: tuple
     landmark_indices: np.ndarray
     license: str
-    detector_cascade: str
     _landmark_basis: np.ndarray = field(repr=False, default=None)
 
     @classmethod
@@ -85,7 +84,6 @@ class FaceModel:
                    expression_basis=expression,
                    expression_names=tuple(arrays["expression_names"]),
                    landmark_indices=landmarks, license=str(arrays["license"]),
-                   detector_cascade=str(arrays["detector_cascade"]),
                    _landmark_basis=np.moveaxis(stacked, 0, -1).astype(np.float64))
 
     @property

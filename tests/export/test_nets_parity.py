@@ -33,18 +33,15 @@ def exported(tmp_path_factory):
     return result
 
 
-def parity_size(contract, multiple):
-    """A size other than the export's and not square, so the H/W axes must really be dynamic;
-    a fixed-size net (the landmark net) gets its own size."""
-    if not contract.dynamic_hw:
-        return contract.inputs[0].shape[2:]
+def parity_size(multiple):
+    """A size other than the export's and not square, so the H/W axes must really be dynamic."""
     return 2 * multiple * 3, multiple * 5
 
 
 @pytest.mark.parametrize("family", sorted(FAMILIES))
 def test_onnx_runtime_matches_torch(exported, family):
     net, path, entry = exported[family]
-    feeds = person_like_inputs(net.io_contract(), *parity_size(net.io_contract(), entry["multiple"]), seed=1)
+    feeds = person_like_inputs(net.io_contract(), *parity_size(entry["multiple"]), seed=1)
     diffs = parity(net, path, feeds)
     assert max(diffs.values()) <= PARITY_TOL, diffs
 
@@ -69,21 +66,15 @@ def test_export_declares_dynamic_hw(exported, family):
     net, path, _ = exported[family]
     graph_input = onnx.load(path).graph.input[0]
     dims = [d.dim_param or d.dim_value for d in graph_input.type.tensor_type.shape.dim]
-    contract = net.io_contract()
-    spatial = ["H", "W"] if contract.dynamic_hw else list(contract.inputs[0].shape[2:])
-    assert dims[0] == "N" and dims[2:] == spatial
+    assert dims[0] == "N" and dims[2:] == ["H", "W"]
 
 
 def _runtime_predict(family, models_dir, h, w):
     """Run the family's runtime class on an odd-sized (h, w) person-like input."""
     from relightcli.nets.delight import DelightNet
     from relightcli.nets.geometry import AONet, GeometryNet
-    from relightcli.nets.landmarks import LandmarkNet
     from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
 
-    if family == "landmarks":  # fixed size: a 128 crop in, 68 points out
-        image = person_like_inputs(build_net(family, "small").io_contract(), 128, 128)["image"]
-        return LandmarkNet(models_dir=models_dir, threads=1).predict(image[0].transpose(1, 2, 0))
     feeds = person_like_inputs(build_net(family, "small").io_contract(), h, w)
     hwc = {k: np.ascontiguousarray(v[0].transpose(1, 2, 0)) for k, v in feeds.items()}
     if family == "geometry":
@@ -103,10 +94,7 @@ def test_exported_models_load_through_the_runtime(tmp_path, family):
     main(["--families", family, "--out", str(tmp_path)])
     assert set(load_manifest(tmp_path)) == {family}
     out = _runtime_predict(family, tmp_path, 50, 70)
-    if family == "landmarks":
-        assert out.shape == (68, 2) and np.isfinite(out).all()
-    else:
-        assert out.shape[:2] == (50, 70) and out.dtype == np.float32 and np.isfinite(out).all()
+    assert out.shape[:2] == (50, 70) and out.dtype == np.float32 and np.isfinite(out).all()
 
 
 def test_int8_quantisation_runs_and_stays_close(exported, tmp_path):

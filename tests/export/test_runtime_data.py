@@ -105,10 +105,16 @@ def test_normals_only_adds_the_geometry_nets_normals_without_ray_tracing(copy):
     assert coarse.run(copy, ["val"], workers=1, product="normals") == 0
 
 
-def test_closeup_square_is_the_runtime_face_crop_in_world_units():
+def test_head_square_is_the_face_box_times_the_margin_in_world_units():
     # a 10 x 20 px face box in a 100 px image spanning [0, 2] x [0, 2]: 0.02 world units per px
     rect = face_closeups.closeup_rect([40, 30, 50, 50], (0.0, 2.0, 0.0, 2.0), 100, margin=1.6)
     np.testing.assert_allclose(rect, (0.9 - 0.32, 0.9 + 0.32, 1.2 - 0.32, 1.2 + 0.32))
+
+
+def test_square_in_pixels_inverts_the_world_square():
+    rect = face_closeups.closeup_rect([40, 30, 50, 50], (0.0, 2.0, 0.0, 2.0), 100, margin=1.6)
+    centre_x, centre_y, side = face_closeups.square_in_pixels(rect, (0.0, 2.0, 0.0, 2.0), 100)
+    np.testing.assert_allclose((centre_x, centre_y, side), (45.0, 40.0, 32.0))
 
 
 def test_runtime_view_loses_detail_but_keeps_the_mean():

@@ -22,15 +22,14 @@ def test_paper_config_uses_the_paper_learning_rates(net):
     assert (config.lr, config.lr_disc) == (1e-5, 1e-6)
 
 
-def test_landmark_config_loads_with_a_cosine_schedule():
-    config = load_config(CONFIG_DIR / "landmarks_small.json")
-    assert (config.net, config.size, config.lr_schedule, config.flip) == ("landmarks", "small", "cosine", False)
-    assert config.loss == PAPER_LOSS["landmarks"]
+def test_closeup_config_loads_with_a_cosine_schedule():
+    config = load_config(CONFIG_DIR / "face_refine_small_closeup.json")
+    assert (config.net, config.size, config.lr_schedule) == ("face_refine", "small", "cosine")
 
 
 def test_unknown_lr_schedule_is_refused():
     with pytest.raises(ConfigError, match="lr_schedule"):
-        TrainConfig(net="landmarks", lr_schedule="step")
+        TrainConfig(net="face_refine", lr_schedule="step")
 
 
 def test_defaults_are_the_paper_learning_rates():

@@ -1,19 +1,16 @@
-"""The face stage around the fit: crop geometry, the skip paths, and the coarse face shading.
-(The landmark net's own recovery tests are in test_face_landmarks.py.)"""
+"""The face stage around the fit: crop geometry, the skip path, and the coarse face shading.
+(The face chain itself is tested in tests/nets/test_face_mesh.py and
+test_face_correspondence.py.)"""
 
 from __future__ import annotations
-
-import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from relightcli.geometry.face import (
-    canonical_crop,
     crop_to_image,
     cut_crop,
-    fit_face_in_crop,
+    fit_face_to_landmarks,
     image_to_crop,
     render_face_shading,
 )
@@ -22,7 +19,6 @@ from relightcli.geometry.face_fit import fit_face
 from relightcli.geometry.face_model import FaceModel, rotation_matrix, transform, world_to_pixel
 from relightcli.render import EnvironmentLight
 
-PHOTOS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "photos"
 RECT = (-0.5, 0.5, 1.2, 2.2)
 SCALE = 0.05  # world units per cm: 6.4 px per cm on the 128 crop
 
@@ -30,24 +26,6 @@ SCALE = 0.05  # world units per cm: 6.4 px per cm on the 128 crop
 @pytest.fixture(scope="module")
 def model():
     return FaceModel.load()
-
-
-class NeverCalled:
-    """A landmark net stand-in for the paths that must skip before running it."""
-
-    crop_size = 128
-
-    def predict(self, face_crop):
-        raise AssertionError("the landmark net ran although there is no face")
-
-
-class RandomPoints:
-    """A landmark net stand-in that answers scattered points: nothing a face explains."""
-
-    crop_size = 128
-
-    def predict(self, face_crop):
-        return np.random.default_rng(0).uniform(10, 118, (68, 2))
 
 
 # --- crops -----------------------------------------------------------------------------------
@@ -78,41 +56,11 @@ def test_cut_crop_pads_outside_the_image_with_zeros():
     assert np.all(cut[:, :38] == 0) and np.all(cut[:, 42:] == 1)
 
 
-def test_canonical_crop_centres_the_landmarks_a_little_low():
-    points = np.array([[10.0, 20.0], [50.0, 20.0], [30.0, 60.0]])
-    crop = canonical_crop(points, 128)
-    assert crop.size == round(2.1 * 40)
-    centre = np.array([crop.left + crop.size / 2 - 0.5, crop.top + crop.size / 2 - 0.5])
-    # the crop centre sits above the landmarks' box centre (30, 40): it includes the forehead
-    assert abs(centre[0] - 30) <= 0.5 and 40 - 0.08 * crop.size - 0.5 <= centre[1] < 40
+# --- skip path -------------------------------------------------------------------------------
 
-
-# --- skip paths ------------------------------------------------------------------------------
-
-def test_no_face_skips_before_the_landmark_net(model):
-    image = np.full((256, 256, 3), 0.3, np.float32)
-    fit, info = fit_face_in_crop(image, None, NeverCalled(), model=model)
-    assert fit is None and "no frontal or profile face" in info["skipped"]
-
-
-def test_back_of_the_head_skips(model):
-    faces = pytest.importorskip("export.factory.faces")
-    from export.factory import camera_model, lighting
-
-    spec = faces.sample_spec(np.random.default_rng(3), model, lighting.hdri_splits()["test"])
-    spec = dataclasses.replace(spec, angles_deg=(180.0, 5.0, 0.0), crop_scale=3.0)
-    photo = camera_model.decode_photo(faces.render_face(model, spec)["image"])
-    fit, info = fit_face_in_crop(photo, None, NeverCalled(), model=model)
-    assert fit is None and "skipped" in info
-
-
-def test_landmarks_no_face_explains_skip_with_the_reason(model):
-    from relightcli.io.images import read_image
-
-    path = PHOTOS / "pexels_woman_with_dog.jpg"
-    if not path.is_file():
-        pytest.skip(f"sample photo not found: {path}")
-    fit, info = fit_face_in_crop(read_image(path).rgb, None, RandomPoints(), model=model)
+def test_scattered_landmarks_skip_with_the_reason(model):
+    points = np.random.default_rng(0).uniform(100, 300, (68, 2))
+    fit, info = fit_face_to_landmarks(points, (512, 512), model=model)
     assert fit is None
     assert "face stage skipped" in info["skipped"] and info["residual_px"] > 0
     assert info["landmarks"] == 68 and len(info["crop"]) == 4

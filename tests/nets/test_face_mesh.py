@@ -120,3 +120,24 @@ def test_nan_pixels_count_as_black_and_find_no_face(nets):
     image = np.full((64, 64, 3), np.nan, np.float32)
     face, why = find_face(image, None, *nets)
     assert face is None and "no face detected" in why
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_texture_has_no_face(nets, seed):
+    image = np.random.default_rng(seed).random((360, 280, 3)).astype(np.float32)
+    face, why = find_face(image, None, *nets)
+    assert face is None and why
+
+
+def test_back_of_head_has_no_face(nets):
+    # A back view: a dark, hair-textured head ellipse on shoulders against a light background
+    rng = np.random.default_rng(3)
+    image = np.full((300, 240, 3), 0.6, np.float32)
+    rows, cols = np.mgrid[0:300, 0:240]
+    head = ((cols - 120) / 45.0) ** 2 + ((rows - 110) / 58.0) ** 2 < 1.0
+    body = (rows > 170) & (np.abs(cols - 120) < 100 - (300 - rows) * 0.3)
+    hair = 0.03 + 0.02 * cv2.GaussianBlur(rng.random((300, 240)).astype(np.float32), (0, 0), 1.5)
+    image[head] = hair[head, None]
+    image[body] = [0.2, 0.25, 0.4]
+    face, why = find_face(image, None, *nets)
+    assert face is None and why
