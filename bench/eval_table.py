@@ -6,7 +6,7 @@ and with the true person mask, as markdown rows (and the JSON of each run under 
 Eval scenes: `python -m export.factory.generate --out data/factory512test --count 20
 --splits test=1 --resolution 512 --workers 2 --seed 0 --spp 128 --target-error 0.03
 --bounces 2` then `python -m export.factory.eval_scenes data/factory512test data/eval512`.
-Validation scenes, to choose settings on (session 6: the mask's edge snapping):
+Validation scenes, to choose settings on (used for the mask's edge snapping):
 `python -m export.factory.generate --out data/factory512val --count 20 --splits val=1
 --resolution 512 --workers 1 --seed 2 --spp 128 --target-error 0.03 --bounces 2` then
 `python -m export.factory.eval_scenes data/factory512val data/evalval512 --split val`.
