@@ -13,7 +13,7 @@ import pytest
 
 from relightcli.cli import main
 from relightcli.io.envmap import load_envmap
-from relightcli.io.images import linear_to_srgb, write_image
+from relightcli.io.images import write_image
 from relightcli.nets.pose import PersonDetector, PoseLandmarker, find_people
 
 REPO = Path(__file__).resolve().parents[1]

@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from relightcli.errors import MissingDependencyError, UsageError
-from relightcli.nets.manifest import verified_file
+from relightcli.nets.manifest import read_data_arrays, verified_file
 
 BODY_MODEL_FILE = "body_model.npz"
 FORMAT_VERSION = 1
@@ -93,7 +92,7 @@ class BodyModel:
         path = Path(path) if path is not None else verified_file("body_model")
         if not path.is_file():
             raise MissingDependencyError("body model file not found", path=path, fix=_FIX_MISSING)
-        arrays = _read_arrays(path)
+        arrays = read_data_arrays(path, _REQUIRED, "body model", _FIX_MISSING)
         version = int(arrays["format_version"])
         if version != FORMAT_VERSION:
             raise MissingDependencyError(f"body model format {version}, expected {FORMAT_VERSION}",
@@ -230,16 +229,3 @@ def skin_points(points: np.ndarray, bones: np.ndarray, weights: np.ndarray,
     and weights (V, S) per point and bone affines (J, 3, 4)."""
     blended = np.einsum("vs,vsij->vij", weights, transforms[bones])
     return apply_affine(blended, points)
-
-
-def _read_arrays(path: Path) -> dict:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [name for name in _REQUIRED if name not in data.files]
-            if missing:
-                raise MissingDependencyError(f"body model lacks {', '.join(missing)}",
-                                             path=path, fix=_FIX_MISSING)
-            return {name: data[name] for name in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as error:
-        raise MissingDependencyError(f"body model file is unreadable ({error})", path=path,
-                                     fix=_FIX_MISSING) from error

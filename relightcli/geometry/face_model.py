@@ -17,14 +17,13 @@ world = scale * rotation @ vertex + translation, and the image sees (world x, wo
 from __future__ import annotations
 
 import hashlib
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from relightcli.errors import MissingDependencyError, UsageError
-from relightcli.nets.manifest import verified_file
+from relightcli.nets.manifest import read_data_arrays, verified_file
 
 FACE_MODEL_FILE = "face_model.npz"
 FORMAT_VERSION = 1
@@ -67,7 +66,7 @@ class FaceModel:
         if not path.is_file():
             raise MissingDependencyError("face model file not found", path=path, fix=_FIX_MISSING)
         payload = path.read_bytes()
-        arrays = _read_arrays(path)
+        arrays = read_data_arrays(path, _REQUIRED, "face model", _FIX_MISSING)
         version = int(arrays["format_version"])
         if version != FORMAT_VERSION:
             raise MissingDependencyError(f"face model format {version}, expected {FORMAT_VERSION}",
@@ -121,19 +120,6 @@ class FaceModel:
     def landmarks(self, identity=None, expression=None) -> np.ndarray:
         """(68, 3) float64 cm: the landmark vertices for identity (K,) and expression (E,)."""
         return self.landmark_neutral + self.landmark_basis @ self.coefficients(identity, expression)
-
-
-def _read_arrays(path: Path) -> dict:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [name for name in _REQUIRED if name not in data.files]
-            if missing:
-                raise MissingDependencyError(f"face model lacks {', '.join(missing)}",
-                                             path=path, fix=_FIX_MISSING)
-            return {name: data[name] for name in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile) as error:
-        raise MissingDependencyError(f"face model file is unreadable ({error})", path=path,
-                                     fix=_FIX_MISSING) from error
 
 
 def _vector(values, size: int, name: str) -> np.ndarray:

@@ -20,8 +20,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 import relightcli
 from relightcli.errors import MissingDependencyError
@@ -173,6 +176,20 @@ def verified_file(name: str, directory: str | Path | None = None) -> Path:
         raise MissingDependencyError(f"{name} file does not match its sha256 in the manifest (corrupt or replaced)",
                                      path=entry.path, fix=MODELS_FIX)
     return entry.path
+
+
+def read_data_arrays(path: str | Path, required: tuple[str, ...], what: str, fix: str) -> dict:
+    """Every array of a data asset's .npz (no pickles) by name; MissingDependencyError naming
+    the file and `fix` when it is unreadable or lacks one of `required`. `what` names the
+    asset in the message ("face model")."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [name for name in required if name not in data.files]
+            if missing:
+                raise MissingDependencyError(f"{what} lacks {', '.join(missing)}", path=path, fix=fix)
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as error:
+        raise MissingDependencyError(f"{what} file is unreadable ({error})", path=path, fix=fix) from error
 
 
 def list_models(directory: str | Path | None = None, verify: bool = False) -> list[ModelStatus]:
