@@ -40,8 +40,9 @@ class Frame:
     coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
     shading: np.ndarray | None = None  # (R, R, 3) final shading under env
     relit_crop: np.ndarray | None = None  # (R, R, 3) albedo * shading, linear
-    people: list = field(default_factory=list)  # relightcli.nets.pose.Person found in the photo
-    portrait_mask: np.ndarray | None = None  # (H, W) selfie segmentation when only a face was found
+    view: "PerceptionView | None" = None  # the photo as the perception nets see it
+    people: list = field(default_factory=list)  # relightcli.nets.pose.Person found, in view pixels
+    portrait_mask: np.ndarray | None = None  # (h, w) selfie segmentation when only a face was found
     face_fit: object | None = None  # relightcli.geometry.face.FaceFit, when the face stage found a face
     face_crop: object | None = None  # its relightcli.geometry.face.CropRect in the working crop
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
@@ -52,6 +53,40 @@ class Frame:
         access (the outputs composite it a band of rows at a time instead)."""
         height, width = self.image.shape[:2]
         return compose.paste_back(self.relit_crop, self.box, height, width)
+
+
+# The perception nets see the photo at most this many pixels on its long side: their inputs are
+# 128-256 px crops, and a full-size sRGB copy of a 24 MP photo alone is 288 MB
+PERCEPTION_MAX_SIDE = 2048
+
+
+@dataclass
+class PerceptionView:
+    """The photo as the perception nets see it: `image` (h, w, 3) float32 sRGB in [0, 1],
+    shrunk by `scale` (sx, sy) from the photo (continuous pixel coordinates: view = photo x
+    scale)."""
+
+    image: np.ndarray
+    scale: tuple[float, float]
+
+    @classmethod
+    def of(cls, photo: np.ndarray) -> "PerceptionView":
+        """The view of a linear (H, W, 3) photo (NaN and infinite pixels count as black)."""
+        from relightcli.io.images import linear_to_srgb
+
+        height, width = photo.shape[:2]
+        factor = min(1.0, PERCEPTION_MAX_SIDE / max(height, width))
+        if factor < 1.0:
+            size = (max(1, round(width * factor)), max(1, round(height * factor)))
+            photo = cv2.resize(photo, size, interpolation=cv2.INTER_AREA)  # NaN spreads to its pixel: black below
+        srgb = np.clip(linear_to_srgb(np.clip(np.nan_to_num(photo, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)), 0.0, 1.0)
+        return cls(srgb.astype(np.float32), (photo.shape[1] / width, photo.shape[0] / height))
+
+    def to_photo_size(self, mask: np.ndarray, height: int, width: int) -> np.ndarray:
+        """A (h, w) map of the view at the photo's (height, width), bilinear."""
+        if mask.shape == (height, width):
+            return mask
+        return cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
 
 
 class Models:
@@ -96,15 +131,15 @@ def stage_people(frame: Frame, options, models: Models) -> None:
     and face mesh find a face in the whole photo (a close portrait: head and shoulders), the
     selfie segmentation gives that person's mask. The report lists who was found, who the
     landmark net turned down, and the portrait fallback when it ran."""
-    from relightcli.io.images import linear_to_srgb
     from relightcli.nets.face_mesh import find_face
     from relightcli.nets.pose import find_people
 
-    srgb = np.clip(linear_to_srgb(np.nan_to_num(frame.image)), 0.0, 1.0).astype(np.float32)
+    frame.view = frame.view or PerceptionView.of(frame.image)
+    srgb, scale = frame.view.image, frame.view.scale
     people = find_people(srgb, models.get("person_detector"), models.get("pose_landmarks"))
     frame.people = [p for p in people if p.found]
-    frame.notes["people"] = {"found": [p.summary() for p in frame.people],
-                             "turned_down": [p.summary() for p in people if not p.found]}
+    frame.notes["people"] = {"found": [p.summary(scale) for p in frame.people],
+                             "turned_down": [p.summary(scale) for p in people if not p.found]}
     if frame.people:
         return
     face, why = find_face(srgb, None, models.get("face_detector"), models.get("face_mesh"))
@@ -112,7 +147,7 @@ def stage_people(frame: Frame, options, models: Models) -> None:
         frame.notes["people"]["portrait"] = f"no body and no face: {why}"
         return
     frame.portrait_mask = models.get("selfie_segmentation").segment(srgb)
-    frame.notes["people"]["portrait"] = {"face": face.summary(), "mask": "selfie segmentation"}
+    frame.notes["people"]["portrait"] = {"face": face.summary(scale), "mask": "selfie segmentation"}
 
 
 def stage_mask(frame: Frame, options, models: Models) -> None:
@@ -130,14 +165,15 @@ def stage_mask(frame: Frame, options, models: Models) -> None:
     if frame.mask is not None:
         return
     if frame.people:
-        frame.mask = np.max([p.pose.mask for p in frame.people], axis=0)
+        union = np.max([p.pose.mask for p in frame.people], axis=0)
         count = len(frame.people)
         source = f"pose segmentation of {count} {'person' if count == 1 else 'people'}"
     elif frame.portrait_mask is not None and (frame.portrait_mask > 0.5).any():
-        frame.mask, source = frame.portrait_mask.copy(), "selfie segmentation (a face, no body found)"
+        union, source = frame.portrait_mask, "selfie segmentation (a face, no body found)"
     else:
         raise RelightError("no person found in the photo",
                            fix="pass --mask FILE to say where the person is (white: person)")
+    frame.mask = frame.view.to_photo_size(union, *frame.image.shape[:2]).copy()
     box = compose.person_crop_box(frame.mask, options.resolution)
     snapped = compose.snap_mask(compose.crop_square(frame.image, box), compose.crop_square(frame.mask, box))
     compose.replace_in_box(frame.mask, snapped, box)
@@ -332,23 +368,24 @@ def stage_face(frame: Frame, options, models: Models) -> None:
     (pipeline.plan_stages). The note says which head square gave the face, or why none did."""
     from relightcli.geometry.face import CropRect, fit_face_to_landmarks
     from relightcli.geometry.face_correspondence import load_correspondence
-    from relightcli.io.images import linear_to_srgb
     from relightcli.nets.blaze import RotatedRect
     from relightcli.nets.face_mesh import find_face, head_rect
 
-    srgb = np.clip(linear_to_srgb(np.nan_to_num(frame.image)), 0.0, 1.0).astype(np.float32)
+    frame.view = frame.view or PerceptionView.of(frame.image)
+    srgb, scale = frame.view.image, np.asarray(frame.view.scale)
     box = frame.box
     heads = [(f"person {k}", head_rect(p.pose.landmarks)) for k, p in enumerate(frame.people)]
-    if not heads:
-        centre = (box.x0 + box.size / 2.0, box.y0 + box.size / 2.0)
-        heads = [("person crop (no person found)", RotatedRect(centre, box.size, box.size, 0.0))]
+    if not heads:  # the person crop's square, in view pixels
+        centre = (box.x0 + box.size / 2.0, box.y0 + box.size / 2.0) * scale
+        heads = [("person crop (no person found)", RotatedRect(tuple(centre), box.size * scale[0], box.size * scale[1], 0.0))]
     reasons = {}
     for source, head in heads:
         face, reasons[source] = find_face(srgb, head, models.get("face_detector"), models.get("face_mesh"))
         if face is None:
             continue
-        # photo pixels (continuous) -> pixel indices of the person crop
-        landmarks = (load_correspondence().landmarks(face.mesh.points[:, :2]) - (box.x0, box.y0)) / box.scale - 0.5
+        # view pixels -> photo pixels (continuous) -> pixel indices of the person crop
+        photo = load_correspondence().landmarks(face.mesh.points[:, :2]) / scale
+        landmarks = (photo - (box.x0, box.y0)) / box.scale - 0.5
         if person_mask_at(frame.crop_mask, landmarks.mean(axis=0)) >= 0.5:
             break
         reasons[source] = "the face found lies outside the person mask"
@@ -359,7 +396,7 @@ def stage_face(frame: Frame, options, models: Models) -> None:
         return
     depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
     fit, info = fit_face_to_landmarks(landmarks, frame.crop.shape, depth=depth)
-    frame.notes["face"] = {"path": "face mesh", "head": source, **face.summary(), **info}
+    frame.notes["face"] = {"path": "face mesh", "head": source, **face.summary(tuple(scale)), **info}
     frame.face_fit = fit
     frame.face_crop = CropRect(*info["crop"]) if fit is not None else None
 

@@ -145,3 +145,25 @@ def test_a_close_portrait_without_a_body_is_found_by_its_face(tmp_path, capsys):
     x0, y0, x1, y1 = (max(0, int(v)) for v in item["stages"]["people"]["portrait"]["face"]["detection_box_photo"])
     assert mask[y0:y1, x0:x1].mean() > 0.8  # the face is in it (the painted chest is partly missed)
 
+
+
+def test_a_large_photo_is_seen_shrunk_and_answered_at_full_size(tmp_path, capsys):
+    """Perception runs on a copy at most PERCEPTION_MAX_SIDE on its long side (a full-size sRGB
+    copy of a 24 MP photo is 288 MB); the mask and the report come back in the photo's pixels."""
+    from relightcli.stages import PERCEPTION_MAX_SIDE
+
+    skier, mask = cv2.imread(str(REPO / "examples" / "skier.jpg")), truth(REPO / "examples" / "skier_mask.png")
+    factor = 2 * PERCEPTION_MAX_SIDE / skier.shape[1]  # the view is half the photo's size
+    size = (round(skier.shape[1] * factor), round(skier.shape[0] * factor))
+    photo = tmp_path / "large.png"
+    cv2.imwrite(str(photo), cv2.resize(skier, size, interpolation=cv2.INTER_CUBIC))
+    code = main([str(photo), "--hdr", str(HDR), "-o", str(tmp_path / "out.png"), "--outputs", "mask", "--json"])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, item["error"]
+    written = cv2.imread(str(tmp_path / "out_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert written.shape == (size[1], size[0])
+    assert iou(written, cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0) > 0.88
+    x0, y0, x1, y1 = item["stages"]["people"]["found"][0]["face_box"]
+    nets = PersonDetector(threads=2), PoseLandmarker(threads=2)
+    small = [p.detection.box for p in find_people(srgb(REPO / "examples" / "skier.jpg"), *nets) if p.found][0]
+    np.testing.assert_allclose([x0, y0, x1, y1], small * factor, rtol=0.05, atol=0.02 * size[0])

@@ -140,11 +140,13 @@ class Face:
     detection: Detection
     mesh: FaceLandmarks
 
-    def summary(self) -> dict:
-        """What the report says of this face (photo pixels)."""
+    def summary(self, scale=(1.0, 1.0)) -> dict:
+        """What the report says of this face, in pixels of a photo `scale` (sx, sy) times
+        smaller than the one the face was found in (1: that photo's pixels)."""
+        box = (np.reshape(self.detection.box, (2, 2)) / scale).reshape(-1)
         return {"detection_score": round(self.detection.score, 3),
                 "face_presence": round(self.mesh.presence, 3),
-                "detection_box_photo": [round(float(v), 1) for v in self.detection.box]}
+                "detection_box_photo": [round(float(v), 1) for v in box]}
 
 
 def find_face(image: np.ndarray, head: RotatedRect | None, detector: FaceDetector,

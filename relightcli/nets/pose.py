@@ -142,14 +142,15 @@ class Person:
     def found(self) -> bool:
         return self.pose is not None and self.pose.presence >= MIN_PRESENCE
 
-    def summary(self) -> dict:
-        """What the report says of this person (photo pixels)."""
-        x0, y0, x1, y1 = (round(float(v), 1) for v in self.detection.box)
-        out = {"face_box": [x0, y0, x1, y1], "detection_score": round(self.detection.score, 3)}
+    def summary(self, scale=(1.0, 1.0)) -> dict:
+        """What the report says of this person, in pixels of a photo `scale` (sx, sy) times
+        smaller than the one the person was found in (1: that photo's pixels)."""
+        box = lambda points: [round(float(v), 1) for v in (np.reshape(points, (-1, 2)) / scale).reshape(-1)]  # noqa: E731
+        out = {"face_box": box(self.detection.box), "detection_score": round(self.detection.score, 3)}
         if self.pose is not None:
             out["presence"] = round(self.pose.presence, 3)
             corners = self.pose.rect.corners()
-            out["body_box"] = [round(float(v), 1) for v in (*corners.min(axis=0), *corners.max(axis=0))]
+            out["body_box"] = box([*corners.min(axis=0), *corners.max(axis=0)])
         return out
 
 
