@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from relightcli.nets.session import ModelSession
+
 
 def sigmoid(x):
     """Logits -> probabilities, clipped so that no exp overflows."""
@@ -207,3 +209,19 @@ def letterbox(image: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     x0, y0 = (size - new_w) // 2, (size - new_h) // 2
     square[y0:y0 + new_h, x0:x0 + new_w] = resized.reshape((new_h, new_w) + image.shape[2:])
     return square, np.array([new_w / width, new_h / height, x0, y0], np.float64)
+
+
+class RegionNet(ModelSession):
+    """A net that looks at a rotated square of the photo (a person's or a face's crop): the
+    crop resampled to the net's input side and mapped to its value range, as MediaPipe's
+    image-to-tensor step does."""
+
+    @property
+    def crop_size(self) -> int:
+        """The side of the square input, (1, S, S, 3)."""
+        return int(self.entry.inputs[0].shape[1])
+
+    def run_region(self, image: np.ndarray, rect: RotatedRect) -> dict[str, np.ndarray]:
+        """The net's outputs on `rect` of `image` (H, W, 3) sRGB in [0, 1]."""
+        crop = crop_rect(image, rect, self.crop_size)
+        return self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})

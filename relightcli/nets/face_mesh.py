@@ -23,6 +23,7 @@ import numpy as np
 from relightcli.nets.blaze import (
     AnchorSpec,
     Detection,
+    RegionNet,
     RotatedRect,
     crop_rect,
     crop_to_photo,
@@ -113,20 +114,15 @@ class FaceLandmarks:
     points: np.ndarray
 
 
-class FaceMesh(ModelSession):
+class FaceMesh(RegionNet):
     model_name = "face_mesh"
     input_names = ("image",)
     output_names = ("landmarks", "face_flag")
 
-    @property
-    def crop_size(self) -> int:
-        return int(self.entry.inputs[0].shape[1])
-
     def landmarks(self, image: np.ndarray, rect: RotatedRect) -> FaceLandmarks:
         """The face mesh in `rect` of `image` (H, W, 3) sRGB in [0, 1]."""
         size = self.crop_size
-        crop = crop_rect(image, rect, size)
-        out = self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})
+        out = self.run_region(image, rect)
         raw = out["landmarks"].reshape(-1, 3).astype(np.float64)
         points = np.hstack([crop_to_photo(rect, raw[:, :2] / size), raw[:, 2:3] / size * rect.width])
         # the face flag is a logit (MediaPipe applies the sigmoid after the graph)

@@ -20,8 +20,8 @@ import numpy as np
 from relightcli.nets.blaze import (
     AnchorSpec,
     Detection,
+    RegionNet,
     RotatedRect,
-    crop_rect,
     crop_to_photo,
     decode_detections,
     letterbox,
@@ -102,20 +102,15 @@ class Pose:
     next_rect: RotatedRect
 
 
-class PoseLandmarker(ModelSession):
+class PoseLandmarker(RegionNet):
     model_name = "pose_landmarks"
     input_names = ("image",)
     output_names = ("landmarks", "presence", "segmentation", "world_landmarks")
 
-    @property
-    def crop_size(self) -> int:
-        return int(self.entry.inputs[0].shape[1])
-
     def landmarks(self, image: np.ndarray, rect: RotatedRect) -> Pose:
         """The pose in `rect` of `image` (H, W, 3) sRGB in [0, 1]."""
         size = self.crop_size
-        crop = crop_rect(image, rect, size)
-        out = self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})
+        out = self.run_region(image, rect)
         raw = out["landmarks"][0].reshape(-1, 5).astype(np.float64)
         points = crop_to_photo(rect, raw[:, :2] / size)
         depth = raw[:, 2:3] / size * rect.width
