@@ -1,0 +1,548 @@
+"""Fit the body model (body_model.py) to one person's BlazePose output: pose, shape, scale and
+placement in the working crop's orthographic camera (compose.py: world square [-1, 1]^2,
+looking along -Z, +Y up).
+
+A fit is a sum of named residual terms, each a small function of the batched parameters,
+their weights in `FitConfig`:
+
+    keypoints   the model's 33 landmarks projected into the crop vs BlazePose's 2D landmarks,
+                crop pixels, weighted by visibility;
+    world       the hip-centred 3D landmarks (metres) vs BlazePose's world landmarks;
+    pose_prior  the rotation away from the closed-form initialisation (radians);
+    shape_prior the shape coefficients (units of their N(0, 1) prior);
+    joint_limit the part of each bone's rotation from rest beyond its limit (radians).
+
+The silhouette term (distance transforms of the mask and of the projected body) is not in
+this version; `silhouette` is only checked for its size.
+
+Stages (SMPLify): 1. initial pose in closed form from the world landmarks' bone directions and
+placement (scale, 2D offset) by weighted linear least squares against the 2D keypoints;
+2. pose + placement; 3. pose + placement + shape, each by scipy.optimize.least_squares with a
+Jacobian by forward differences evaluated as one batch of parameter vectors.
+
+Only FIT_BONES rotate; every other bone keeps the identity, so its world transform is that of
+its nearest rotating ancestor and the fit needs the transforms of those ~20 bones only.
+
+Conventions: BlazePose world landmarks are x right, y down, z away from the camera (checked
+on examples/skier.jpg: the nose at y -0.6, the near shoulder at negative z), so the model
+frame (+Y up, facing +Z towards the camera) is (x, -y, -z). Crop pixels are (col, row) with
+pixel (i, j)'s centre at x = -1 + (j + 0.5) 2/R, y = 1 - (i + 0.5) 2/R.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from relightcli.compose import CROP_RECT
+from relightcli.geometry.body_model import LANDMARK_NAMES, BodyModel
+from relightcli.geometry.face_model import pixel_to_world, world_to_pixel
+
+# The rotating bones and each one's limit (degrees of rotation away from MakeHuman's rest pose)
+FIT_BONES = {
+    "root": 180.0, "spine04": 35.0, "spine02": 30.0, "spine01": 30.0, "neck01": 45.0,
+    "head": 60.0, "clavicle.L": 25.0, "clavicle.R": 25.0, "upperarm01.L": 160.0,
+    "upperarm01.R": 160.0, "lowerarm01.L": 160.0, "lowerarm01.R": 160.0, "wrist.L": 90.0,
+    "wrist.R": 90.0, "upperleg01.L": 140.0, "upperleg01.R": 140.0, "lowerleg01.L": 160.0,
+    "lowerleg01.R": 160.0, "foot.L": 60.0, "foot.R": 60.0,
+}
+# Closed-form initialisation: (bone, landmarks its head sits on, landmarks it points to),
+# parents first; a segment's ends are the mean of the named landmarks
+LIMB_SEGMENTS = (
+    ("upperarm01.L", ("left_shoulder",), ("left_elbow",)),
+    ("upperarm01.R", ("right_shoulder",), ("right_elbow",)),
+    ("lowerarm01.L", ("left_elbow",), ("left_wrist",)),
+    ("lowerarm01.R", ("right_elbow",), ("right_wrist",)),
+    ("wrist.L", ("left_wrist",), ("left_index", "left_pinky")),
+    ("wrist.R", ("right_wrist",), ("right_index", "right_pinky")),
+    ("upperleg01.L", ("left_hip",), ("left_knee",)),
+    ("upperleg01.R", ("right_hip",), ("right_knee",)),
+    ("lowerleg01.L", ("left_knee",), ("left_ankle",)),
+    ("lowerleg01.R", ("right_knee",), ("right_ankle",)),
+    ("foot.L", ("left_heel",), ("left_foot_index",)),
+    ("foot.R", ("right_heel",), ("right_foot_index",)),
+)
+# Landmarks that must be present for a fit: the torso and the limbs' main joints
+CORE_LANDMARKS = tuple(LANDMARK_NAMES.index(n) for n in (
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle"))
+_L = {name: i for i, name in enumerate(LANDMARK_NAMES)}
+_HIPS = (_L["left_hip"], _L["right_hip"])
+_SHOULDERS = (_L["left_shoulder"], _L["right_shoulder"])
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Term weights (each residual is sqrt(weight) times the quantity in its unit) and the
+    optimiser's settings. Defaults balance a 2 px keypoint error, a 3 cm world error and
+    about 10 degrees of pose change from the initialisation."""
+
+    keypoints: float = 1.0 / 2.0 ** 2       # per crop pixel^2
+    world: float = 1.0 / 0.03 ** 2          # per m^2
+    pose_prior: float = 1.0 / 0.5 ** 2      # per rad^2 away from the initialisation
+    shape_prior: float = 1.0                # per unit coefficient^2
+    joint_limit: float = 1.0 / 0.02 ** 2    # per rad^2 beyond a bone's limit
+    pose_iterations: int = 20               # residual evaluations (max_nfev), stage 2
+    shape_iterations: int = 15              # stage 3
+    min_visibility: float = 0.5             # a keypoint counts as seen above this
+    min_core_seen: int = 8                  # of the 12 CORE_LANDMARKS, else no fit
+    max_residual_px: float = 6.0            # RMS keypoint residual at 512 px of a converged fit
+    bone_limits: dict = field(default_factory=lambda: dict(FIT_BONES))
+
+
+@dataclass(frozen=True)
+class BodyFit:
+    """A fitted body: shape (K,) coefficients; rotations (J, 3, 3) local; translation (3,) and
+    scale (crop world units per metre) such that `model.posed(shape, rotations, translation,
+    scale)` gives vertices (V, 3) float64 in the crop's world frame (the photo's person under
+    the orthographic crop camera, hips at depth 0); residual_px: RMS visible-keypoint error
+    in crop pixels (nan when nothing was fitted); converged False with a reason on a fallback."""
+
+    shape: np.ndarray
+    rotations: np.ndarray
+    translation: np.ndarray
+    scale: float
+    vertices: np.ndarray
+    residual_px: float
+    converged: bool
+    reason: str
+
+
+def blazepose_world_to_model(world: np.ndarray) -> np.ndarray:
+    """(N, 3) model-frame points (+Y up, facing +Z) of BlazePose world landmarks (N, 3) m."""
+    return np.asarray(world, np.float64) * np.array([1.0, -1.0, -1.0])
+
+
+def crop_pixels_to_world(pixels: np.ndarray, resolution: int) -> np.ndarray:
+    """(N, 2) crop world (x, y) of (N, 2) (col, row) pixels of an R x R crop."""
+    return pixel_to_world(pixels, CROP_RECT, (resolution, resolution))
+
+
+def observe_landmarks(model: BodyModel, shape, rotations, translation, scale: float,
+                      resolution: int):
+    """What a perfect BlazePose would report for a posed body: (33, 2) crop pixels (col, row)
+    and (33, 3) hip-centred world landmarks in BlazePose's frame (x right, y down, m). The
+    inverse of the conventions `fit_body` reads; the tests' and benchmark's ground truth."""
+    _, _, landmarks = model.posed(shape, rotations, translation, scale)
+    pixels = world_to_pixel(landmarks, CROP_RECT, (resolution, resolution))
+    _, _, metric = model.posed(shape, rotations)
+    metric = metric - metric[list(_HIPS)].mean(axis=0)
+    return pixels, blazepose_world_to_model(metric)
+
+
+# --- rotations -------------------------------------------------------------------------------
+
+def axis_angle_to_matrix(vectors: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations of axis-angle vectors (..., 3) rad (Rodrigues)."""
+    theta = np.linalg.norm(vectors, axis=-1)[..., None, None]
+    k = np.zeros(vectors.shape[:-1] + (3, 3))
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -z, y, -x
+    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = z, -y, x
+    # sin(t)/t and (1 - cos t)/t^2 by their series near 0
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta ** 2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta ** 2 / 24.0, (1.0 - np.cos(safe)) / safe ** 2)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking direction a (3,) to direction b (3,)."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis, cosine = np.cross(a, b), float(np.clip(a @ b, -1.0, 1.0))
+    sine = np.linalg.norm(axis)
+    if sine < 1e-9:
+        if cosine > 0:
+            return np.eye(3)
+        # Opposite directions: half a turn about any axis perpendicular to a
+        other = np.eye(3)[np.argmin(np.abs(a))]
+        perpendicular = np.cross(a, other)
+        return axis_angle_to_matrix(np.pi * perpendicular / np.linalg.norm(perpendicular))
+    return axis_angle_to_matrix(axis / sine * np.arctan2(sine, cosine))
+
+
+def rotation_angle(rotations: np.ndarray) -> np.ndarray:
+    """(...,) rad angle of rotations (..., 3, 3), from |R - I|_F = 2 sqrt(2) sin(theta / 2)."""
+    frobenius = np.linalg.norm(rotations - np.eye(3), axis=(-2, -1))
+    return 2.0 * np.arcsin(np.clip(frobenius / (2.0 * np.sqrt(2.0)), 0.0, 1.0))
+
+
+def _torso_frame(points: np.ndarray) -> np.ndarray:
+    """(3, 3) columns: the person's left (hip to hip), up (hips to shoulders), forward."""
+    left = points[_HIPS[0]] - points[_HIPS[1]]
+    up = points[list(_SHOULDERS)].mean(axis=0) - points[list(_HIPS)].mean(axis=0)
+    left = left / np.linalg.norm(left)
+    up = up - (up @ left) * left
+    up = up / np.linalg.norm(up)
+    return np.stack([left, up, np.cross(left, up)], axis=1)
+
+
+# --- the reduced skeleton --------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class _Skeleton:
+    """The FIT_BONES of a model: ids (B,), each one's nearest rotating ancestor as an index
+    into ids (-1 for the root), depth levels, and for each landmark the index of the rotating
+    bone it moves with."""
+
+    ids: np.ndarray
+    parents: np.ndarray
+    levels: tuple
+    landmark_bone: np.ndarray
+    limits: np.ndarray
+
+
+def _skeleton(model: BodyModel, limits: dict) -> _Skeleton:
+    ids = np.array([model.joint_names.index(name) for name in limits])
+    order = np.argsort(ids)  # parents before children, as in the model
+    ids, limit = ids[order], np.radians(np.array(list(limits.values())))[order]
+    slot = {int(b): i for i, b in enumerate(ids)}
+
+    def rotating_ancestor(bone: int) -> int:
+        while bone >= 0 and bone not in slot:
+            bone = int(model.joint_parents[bone])
+        if bone < 0:
+            raise ValueError("the model's root bone must be among the fit bones")
+        return slot[bone]
+
+    parents = np.array([-1 if model.joint_parents[b] < 0 else
+                        rotating_ancestor(int(model.joint_parents[b])) for b in ids])
+    depth = np.zeros(len(ids), np.int64)
+    for i, p in enumerate(parents):
+        depth[i] = 0 if p < 0 else depth[p] + 1
+    levels = tuple(np.flatnonzero(depth == d) for d in range(depth.max() + 1))
+    landmark_bone = np.array([rotating_ancestor(int(b)) for b in model.landmark_bones])
+    return _Skeleton(ids, parents, levels, landmark_bone, limit)
+
+
+# --- the closed-form initialisation ----------------------------------------------------------
+
+def initial_pose(model: BodyModel, world_landmarks: np.ndarray, shape=None,
+                 limits: dict | None = None) -> np.ndarray:
+    """(J, 3, 3) local rotations that point the body's limbs along BlazePose world landmarks
+    (33, 3) m (BlazePose frame). The root turns the rest torso frame (hips, shoulders) onto
+    the landmarks'; then each LIMB_SEGMENTS bone, parents first, gets the smallest rotation
+    taking its rest direction to the landmark segment seen through its parent's rotation.
+    Spine, neck, head and clavicles stay at rest. Needs finite, non-collapsed landmarks."""
+    target = blazepose_world_to_model(world_landmarks)
+    rotations = model.rest_pose()
+    rotations[0] = _torso_frame(target) @ _torso_frame(model.rest_landmarks(shape)).T
+    directions = {bone: target[[_L[n] for n in tips]].mean(axis=0)
+                  - target[[_L[n] for n in heads]].mean(axis=0)
+                  for bone, heads, tips in LIMB_SEGMENTS}
+    return aim_limbs(model, rotations, directions, shape)
+
+
+def aim_limbs(model: BodyModel, rotations: np.ndarray, directions: dict, shape=None) -> np.ndarray:
+    """(J, 3, 3) a copy of local rotations (J, 3, 3) with each LIMB_SEGMENTS bone named in
+    `directions` (bone name -> (3,) model-frame direction), parents first, turned by the
+    smallest rotation that points its rest segment along the direction given its parent's
+    posed rotation. Near-zero directions leave the bone as it is."""
+    rest = model.rest_landmarks(shape)
+    rotations = np.array(rotations, np.float64)
+    for bone, heads, tips in LIMB_SEGMENTS:
+        direction = np.asarray(directions.get(bone, np.zeros(3)), np.float64)
+        if np.linalg.norm(direction) < 1e-6:
+            continue
+        b = model.joint_names.index(bone)
+        rest_direction = (rest[[_L[n] for n in tips]].mean(axis=0)
+                          - rest[[_L[n] for n in heads]].mean(axis=0))
+        parent = _global_rotation(model, rotations, int(model.joint_parents[b]))
+        rotations[b] = rotation_between(rest_direction, parent.T @ direction)
+    return rotations
+
+
+def _global_rotation(model: BodyModel, rotations: np.ndarray, bone: int) -> np.ndarray:
+    """(3, 3) the product of the local rotations from the root down to `bone`."""
+    chain = []
+    while bone >= 0:
+        chain.append(bone)
+        bone = int(model.joint_parents[bone])
+    total = np.eye(3)
+    for b in reversed(chain):
+        total = total @ rotations[b]
+    return total
+
+
+# --- the batched forward model and the named terms -------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """Everything a residual evaluation reads. Parameters: rotation vectors (B, 3) rad applied
+    after the initial rotations, log scale (crop units per metre), 2D offset, shape (K,)."""
+
+    model: BodyModel
+    skeleton: _Skeleton
+    initial: np.ndarray        # (B, 3, 3) initial local rotations of the fit bones
+    keypoints: np.ndarray      # (33, 2) crop world units (0 where unseen)
+    keypoint_weight: np.ndarray  # (33,) visibility, 0 where unseen
+    world: np.ndarray          # (33, 3) model frame, hip-centred, m
+    world_weight: np.ndarray   # (33,)
+    pixels_per_unit: float
+    config: FitConfig
+
+    @property
+    def n_params(self) -> int:
+        return 3 * len(self.skeleton.ids) + 3 + self.model.n_shape
+
+
+def _unpack(problem: _Problem, params: np.ndarray):
+    n_bones = len(problem.skeleton.ids)
+    vectors = params[:, :3 * n_bones].reshape(len(params), n_bones, 3)
+    scale = np.exp(params[:, 3 * n_bones])
+    offset = params[:, 3 * n_bones + 1:3 * n_bones + 3]
+    shape = params[:, 3 * n_bones + 3:]
+    return vectors, scale, offset, shape
+
+
+def _posed_landmarks(problem: _Problem, local: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """(N, 33, 3) m, model frame: the landmarks of N parameter sets, with local rotations
+    (N, B, 3, 3) of the fit bones: G_b = G_a T(h_b) R_b T(-h_b), i.e. Q_b = Q_a R_b and
+    t_b = Q_a (h_b - R_b h_b) + t_a for the nearest rotating ancestor a."""
+    model, skeleton = problem.model, problem.skeleton
+    heads = model.mean_joints[skeleton.ids] + np.einsum(
+        "nk,kbc->nbc", shape, model.joint_basis[:, skeleton.ids])
+    rest = model.mean_landmarks + np.einsum("nk,klc->nlc", shape, model.landmark_basis)
+    offsets = heads - np.einsum("nbij,nbj->nbi", local, heads)
+    rotation, translation = local.copy(), offsets.copy()
+    for level in skeleton.levels[1:]:
+        parent = skeleton.parents[level]
+        rotation[:, level] = rotation[:, parent] @ local[:, level]
+        translation[:, level] = (np.einsum("nbij,nbj->nbi", rotation[:, parent], offsets[:, level])
+                                 + translation[:, parent])
+    bone = skeleton.landmark_bone
+    return np.einsum("nlij,nlj->nli", rotation[:, bone], rest) + translation[:, bone]
+
+
+def keypoint_residuals(projected, keypoints, weight, pixels_per_unit) -> np.ndarray:
+    """(N, 66) crop pixels: projected landmarks (N, 33, 2) vs keypoints (33, 2), crop world
+    units, times sqrt(weight) (33,)."""
+    error = (projected - keypoints) * pixels_per_unit * np.sqrt(weight)[:, None]
+    return error.reshape(len(projected), -1)
+
+
+def world_residuals(landmarks, world, weight) -> np.ndarray:
+    """(N, 99) m: hip-centred landmarks (N, 33, 3) vs world landmarks (33, 3), times
+    sqrt(weight) (33,)."""
+    centred = landmarks - landmarks[:, list(_HIPS)].mean(axis=1, keepdims=True)
+    return ((centred - world) * np.sqrt(weight)[:, None]).reshape(len(landmarks), -1)
+
+
+def pose_prior_residuals(vectors) -> np.ndarray:
+    """(N, 3B) rad: the rotation vectors (N, B, 3) away from the initialisation."""
+    return vectors.reshape(len(vectors), -1)
+
+
+def shape_prior_residuals(shape) -> np.ndarray:
+    """(N, K): shape coefficients in units of their N(0, 1) prior."""
+    return shape
+
+
+def joint_limit_residuals(local, limits) -> np.ndarray:
+    """(N, B) rad: each bone's rotation from rest (N, B, 3, 3) beyond its limit (B,) rad."""
+    return np.maximum(rotation_angle(local) - limits, 0.0)
+
+
+def _residuals(problem: _Problem, params: np.ndarray) -> np.ndarray:
+    """(N, M) the weighted sum-of-squares terms of N parameter sets (N, P)."""
+    cfg = problem.config
+    vectors, scale, offset, shape = _unpack(problem, params)
+    local = problem.initial @ axis_angle_to_matrix(vectors)
+    landmarks = _posed_landmarks(problem, local, shape)
+    projected = scale[:, None, None] * landmarks[..., :2] + offset[:, None, :]
+    terms = (
+        np.sqrt(cfg.keypoints) * keypoint_residuals(projected, problem.keypoints,
+                                                    problem.keypoint_weight,
+                                                    problem.pixels_per_unit),
+        np.sqrt(cfg.world) * world_residuals(landmarks, problem.world, problem.world_weight),
+        np.sqrt(cfg.pose_prior) * pose_prior_residuals(vectors),
+        np.sqrt(cfg.shape_prior) * shape_prior_residuals(shape),
+        np.sqrt(cfg.joint_limit) * joint_limit_residuals(local, problem.skeleton.limits),
+    )
+    return np.concatenate(terms, axis=1)
+
+
+def _solve_stage(problem: _Problem, params: np.ndarray, free: np.ndarray,
+                 iterations: int) -> np.ndarray:
+    """(P,) the parameters after least squares over the `free` (P,) bool entries, the rest
+    held; the Jacobian by forward differences, all perturbations in one batch."""
+    step = 1e-6
+
+    def full(x):
+        batch = np.repeat(params[None], len(x), axis=0)
+        batch[:, free] = x
+        return batch
+
+    def fun(x):
+        return _residuals(problem, full(x[None]))[0]
+
+    def jac(x):
+        batch = np.vstack([x, x + step * np.eye(len(x))])
+        values = _residuals(problem, full(batch))
+        return ((values[1:] - values[0]) / step).T
+
+    # Levenberg-Marquardt (MINPACK, QR): far cheaper per step here than trf's full SVD
+    result = least_squares(fun, params[free], jac=jac, method="lm", max_nfev=iterations,
+                           x_scale="jac")
+    out = params.copy()
+    out[free] = result.x
+    return out
+
+
+# --- the fit ---------------------------------------------------------------------------------
+
+def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
+             config: FitConfig = FitConfig(), resolution: int | None = None) -> BodyFit:
+    """Fit pose, shape, scale and placement to one person.
+
+    keypoints_2d (33, 2) crop pixels (col, row) of an R x R crop; visibility (33,) in [0, 1];
+    world (33, 3) BlazePose world landmarks, m, hip-centred, y down (None: missing);
+    silhouette (R, R) person probability or None (not used yet, sets R); resolution R when
+    there is no silhouette. Never raises on missing, NaN or collapsed landmarks: those, and
+    a person too little seen, seen from behind or sitting, give a rest-pose body with
+    converged False and the reason; a fit whose keypoint residual stays above
+    config.max_residual_px (at 512 px) comes back with converged False too.
+    """
+    resolution = _resolution(silhouette, resolution)
+    keypoints, weight = _seen_keypoints(keypoints_2d, visibility, resolution, config)
+    reason = _input_problem(keypoints, weight, world, config)
+    if reason is not None:
+        return _fallback(model, keypoints, weight, resolution, reason)
+    world = np.asarray(world, np.float64)
+    skeleton = _skeleton(model, config.bone_limits)
+    rotations = initial_pose(model, world)
+    problem = _Problem(model, skeleton, rotations[skeleton.ids], keypoints, weight,
+                       _hip_centred(blazepose_world_to_model(world)), np.ones(33),
+                       resolution / 2.0, config)
+    # Stage 1: placement in closed form for the initial pose
+    _, _, landmarks = model.posed(None, rotations)
+    scale, offset = _placement(landmarks[:, :2], keypoints, weight)
+    params = np.zeros(problem.n_params)
+    n_rot = 3 * len(problem.skeleton.ids)
+    params[n_rot], params[n_rot + 1:n_rot + 3] = np.log(scale), offset
+    # Stage 2: pose and placement; stage 3: everything, shape included
+    free = np.arange(problem.n_params) < n_rot + 3
+    params = _solve_stage(problem, params, free, config.pose_iterations)
+    params = _solve_stage(problem, params, np.ones_like(free), config.shape_iterations)
+    return _finish(problem, params, resolution)
+
+
+def _resolution(silhouette, resolution) -> int:
+    if silhouette is not None:
+        silhouette = np.asarray(silhouette)
+        if silhouette.ndim != 2 or silhouette.shape[0] != silhouette.shape[1]:
+            raise ValueError(f"silhouette must be a square (R, R) map, got {silhouette.shape}")
+        if resolution is not None and resolution != silhouette.shape[0]:
+            raise ValueError(f"resolution {resolution} differs from the silhouette's "
+                             f"{silhouette.shape[0]}")
+        return silhouette.shape[0]
+    if resolution is None or resolution < 8:
+        raise ValueError(f"fit_body needs the crop resolution (>= 8), got {resolution!r}")
+    return int(resolution)
+
+
+def _seen_keypoints(keypoints_2d, visibility, resolution: int, config: FitConfig):
+    """(33, 2) crop world units (0 where unusable) and (33,) weights: the visibility where
+    it passes config.min_visibility and the keypoint is finite, else 0."""
+    pixels = np.asarray(keypoints_2d, np.float64)
+    seen = np.asarray(visibility, np.float64)
+    if pixels.shape != (33, 2) or seen.shape != (33,):
+        raise ValueError(f"keypoints must be (33, 2) and visibility (33,), got {pixels.shape} "
+                         f"and {seen.shape}")
+    usable = np.isfinite(pixels).all(axis=1) & np.isfinite(seen) & (seen > config.min_visibility)
+    pixels = np.where(usable[:, None], pixels, 0.0)
+    return crop_pixels_to_world(pixels, resolution), np.where(usable, seen, 0.0)
+
+
+def _input_problem(keypoints, weight, world, config: FitConfig) -> str | None:
+    """Why these inputs cannot be fitted, or None."""
+    core = list(CORE_LANDMARKS)
+    n_seen = int(np.count_nonzero(weight[core]))
+    if n_seen < config.min_core_seen:
+        return (f"only {n_seen} of the 12 main joints seen (person cut by the frame or "
+                f"occluded)")
+    seen = keypoints[core][weight[core] > 0]
+    if np.ptp(seen, axis=0).max() < 1e-3:
+        return "the 2D keypoints collapse to a point"
+    if world is None:
+        return "no world landmarks"
+    world = np.asarray(world, np.float64)
+    if world.shape != (33, 3) or not np.isfinite(world).all():
+        return "world landmarks missing or not finite"
+    points = blazepose_world_to_model(world)
+    hips = np.linalg.norm(points[_HIPS[0]] - points[_HIPS[1]])
+    torso = np.linalg.norm(points[list(_SHOULDERS)].mean(0) - points[list(_HIPS)].mean(0))
+    if hips < 0.02 or torso < 0.1:
+        return "world landmarks collapsed (hips or torso shorter than 2 cm / 10 cm)"
+    frame = _torso_frame(points)
+    if frame[2, 2] < -0.3:
+        return "back view (the torso faces away from the camera)"
+    thighs = [points[_L[k]] - points[_L[h]] for h, k in (("left_hip", "left_knee"),
+                                                         ("right_hip", "right_knee"))]
+    if all(-(t @ frame[:, 1]) < 0.5 * np.linalg.norm(t) for t in thighs):
+        return "sitting (both thighs more than 60 degrees from the torso's axis)"
+    return None
+
+
+def _hip_centred(points: np.ndarray) -> np.ndarray:
+    return points - points[list(_HIPS)].mean(axis=0)
+
+
+def _placement(points: np.ndarray, keypoints: np.ndarray, weight: np.ndarray):
+    """Scale s and offset o (2,) minimising sum w |s p + o - y|^2 for model points p (33, 2)
+    and keypoints y (33, 2): weighted linear least squares, centred."""
+    total = weight.sum()
+    p_mean = (weight[:, None] * points).sum(0) / total
+    y_mean = (weight[:, None] * keypoints).sum(0) / total
+    p, y = points - p_mean, keypoints - y_mean
+    scale = float((weight[:, None] * p * y).sum() / max((weight[:, None] * p * p).sum(), 1e-12))
+    return scale, y_mean - scale * p_mean
+
+
+def _finish(problem: _Problem, params: np.ndarray, resolution: int) -> BodyFit:
+    model, skeleton, cfg = problem.model, problem.skeleton, problem.config
+    vectors, scale, offset, shape = _unpack(problem, params[None])
+    rotations = model.rest_pose()
+    rotations[skeleton.ids] = problem.initial @ axis_angle_to_matrix(vectors[0])
+    # Re-orthonormalise (the posed model checks) and keep the shape inside its prior's range
+    u, _, vt = np.linalg.svd(rotations)
+    rotations = u @ vt
+    shape = np.clip(shape[0], -4.0, 4.0)
+    scale = float(scale[0])
+    if not np.all(np.isfinite(params)) or not (0 < scale < 1e3):
+        return _fallback(model, problem.keypoints, problem.keypoint_weight, resolution,
+                         "the fit diverged")
+    _, _, landmarks = model.posed(shape, rotations)
+    hips_z = landmarks[list(_HIPS), 2].mean()
+    translation = np.array([offset[0, 0], offset[0, 1], -scale * hips_z])
+    vertices, _, landmarks = model.posed(shape, rotations, translation, scale)
+    residual = _residual_px(landmarks, problem.keypoints, problem.keypoint_weight, resolution)
+    limit = cfg.max_residual_px * resolution / 512.0
+    converged = residual <= limit
+    reason = "" if converged else (f"fit did not converge: {residual:.1f} px RMS keypoint "
+                                   f"error, limit {limit:.1f}")
+    return BodyFit(shape, rotations, translation, scale, vertices, residual, converged, reason)
+
+
+def _residual_px(landmarks, keypoints, weight, resolution: int) -> float:
+    """RMS crop-pixel distance of the seen keypoints, weighted by visibility."""
+    error = np.linalg.norm(landmarks[:, :2] - keypoints, axis=1) * resolution / 2.0
+    return float(np.sqrt((weight * error ** 2).sum() / max(weight.sum(), 1e-12)))
+
+
+def _fallback(model: BodyModel, keypoints, weight, resolution: int, reason: str) -> BodyFit:
+    """The rest-pose mean body, placed on the seen keypoints when they allow it (else
+    filling the crop), converged False with `reason`."""
+    _, _, landmarks = model.posed(None, model.rest_pose())
+    scale, offset = 1.0, np.zeros(2)
+    if np.count_nonzero(weight) >= 2:
+        s, o = _placement(landmarks[:, :2], keypoints, weight)
+        if np.isfinite(s) and s > 1e-3 and np.all(np.isfinite(o)):
+            scale, offset = s, o
+    translation = np.array([offset[0], offset[1], 0.0])
+    vertices, _, _ = model.posed(None, model.rest_pose(), translation, scale)
+    return BodyFit(np.zeros(model.n_shape), model.rest_pose(), translation, scale, vertices,
+                   float("nan"), False, reason)
