@@ -5,12 +5,16 @@ Library code: it raises and returns; the CLI prints. One failing item never stop
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
+import glob
 import json
 import multiprocessing
 import os
+import signal
 import tempfile
+import threading
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -21,6 +25,7 @@ from typing import Callable, Iterable
 
 from relightcli.errors import (
     EXIT_ITEMS_FAILED,
+    EXIT_MISSING,
     EXIT_OK,
     InputError,
     MissingDependencyError,
@@ -29,7 +34,7 @@ from relightcli.errors import (
     RelightWarning,
     UsageError,
 )
-from relightcli.layers import IMAGE_EXTENSIONS, LAYERS
+from relightcli.layers import IMAGE_EXTENSIONS, LAYERS, OUTPUT_EXTENSIONS
 
 
 @dataclass
@@ -74,9 +79,18 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
     """
     exclude = {Path(p).resolve() for p in exclude}
     found: list[tuple[Path, Path]] = []
+    seen: set[Path] = set()  # resolved paths: a file named twice (or via a link) is relit once
+
+    def add(file: Path, stem: Path) -> None:
+        resolved = file.resolve()
+        if resolved not in seen:
+            seen.add(resolved)
+            found.append((file, stem))
+
     for raw in paths:
         path = Path(raw)
         if path.is_dir():
+            _refuse_folder_in_output(path, exclude)
             pattern = "**/*" if recursive else "*"
             for file in sorted(path.glob(pattern)):
                 resolved = file.resolve()
@@ -84,10 +98,10 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
                     continue
                 if resolved in exclude or any(parent in exclude for parent in resolved.parents):
                     continue
-                found.append((file, file.relative_to(path).with_suffix("")))
+                add(file, file.relative_to(path).with_suffix(""))
         elif path.exists() or path.suffix:
             # Files, including missing ones: each missing file fails as its own item.
-            found.append((path, Path(path.stem)))
+            add(path, Path(path.stem))
         else:
             raise InputError("no such file or directory", path=path, fix="check the input path")
     if not found:
@@ -95,18 +109,39 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
     return found
 
 
+def _refuse_folder_in_output(folder: Path, exclude: set[Path]) -> None:
+    """An input folder that is (or lies inside) an excluded folder, the output, would be
+    scanned empty: say so instead of "no input images found"."""
+    resolved = folder.resolve()
+    if resolved in exclude:
+        raise UsageError("the output folder is the input folder", path=folder,
+                         fix="choose another -o, e.g. a sub-folder such as -o "
+                             f"{Path(folder, 'relit')}")
+    if any(parent in exclude for parent in resolved.parents):
+        raise UsageError("the input folder lies inside the output folder", path=folder,
+                         fix="choose an -o outside the input folder")
+
+
 TURNTABLE_LAYERS = ("relit", "shading")  # the layers that change with the lighting
 
 
-def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0) -> list[Item]:
+def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0,
+               read_only: Iterable[str | Path] = ()) -> list[Item]:
     """Decide every output path. `out` is a file when there is exactly one input and it has an
-    image extension; otherwise a directory. With a turntable of N frames the lit layers become
-    N numbered files ('relit#000' -> photo_turn000.png). Refuses collisions and outputs that
-    are inputs."""
+    extension (one of OUTPUT_EXTENSIONS, else a UsageError); it is a directory when there are
+    several inputs, when it has no extension, ends with '/' or is an existing folder. With a
+    turntable of N frames the lit layers become N numbered files ('relit#000' ->
+    photo_turn000.png). Refuses collisions and outputs that are inputs: the photos and the
+    `read_only` files (the environment map, the mask)."""
+    as_folder = str(out).endswith(("/", os.sep)) or Path(out).is_dir() or not Path(out).suffix
     out = Path(out)
     layers = list(layers)
-    single_file = len(found) == 1 and out.suffix.lower() in IMAGE_EXTENSIONS and not out.is_dir()
-    if len(found) > 1 and out.suffix.lower() in IMAGE_EXTENSIONS and not out.is_dir():
+    single_file = len(found) == 1 and not as_folder
+    if single_file and out.suffix.lower() not in OUTPUT_EXTENSIONS:
+        raise UsageError(f"unsupported output format '{out.suffix}'", path=out,
+                         fix=f"name the output file with {', '.join(OUTPUT_EXTENSIONS)}, "
+                             "or end -o with '/' for a folder")
+    if len(found) > 1 and out.suffix.lower() in IMAGE_EXTENSIONS and not as_folder:
         raise UsageError(f"{len(found)} inputs need an output folder, not the file {out}", fix="pass -o DIRECTORY")
     items = []
     for path, stem in found:
@@ -122,7 +157,7 @@ def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0
         if turntable:
             outputs = _numbered_frames(outputs, turntable)
         items.append(Item(path, outputs))
-    _refuse_collisions(items)
+    _refuse_collisions(items, read_only)
     return items
 
 
@@ -137,14 +172,20 @@ def _numbered_frames(outputs: dict[str, Path], frames: int) -> dict[str, Path]:
     return numbered
 
 
-def _refuse_collisions(items: list[Item]) -> None:
-    inputs = {item.input.resolve() for item in items}
+def _refuse_collisions(items: list[Item], read_only: Iterable[str | Path] = ()) -> None:
+    """No output may replace a file that is read (a photo, the map, the mask), whatever path
+    names it: resolved paths (symlinks, '..') and, for files that exist, the inode (hard links)."""
+    inputs = [item.input for item in items] + [Path(p) for p in read_only]
+    resolved_inputs = {path.resolve(): path for path in inputs}
+    inode_inputs = {key: path for path in inputs if (key := _inode(path)) is not None}
     seen: dict[Path, Path] = {}
     for item in items:
         for path in item.outputs.values():
             resolved = path.resolve()
-            if resolved in inputs:
-                raise OutputError("output would overwrite an input", path=path, fix="choose another -o")
+            overwritten = resolved_inputs.get(resolved) or inode_inputs.get(_inode(path))
+            if overwritten is not None:
+                raise OutputError(f"output would overwrite the input {overwritten}", path=path,
+                                  fix="choose another -o")
             if resolved in seen and seen[resolved] != item.input:
                 raise OutputError(
                     f"two inputs ({seen[resolved]}, {item.input}) would write the same output",
@@ -152,6 +193,15 @@ def _refuse_collisions(items: list[Item]) -> None:
                     fix="rename one input or process them into different folders",
                 )
             seen[resolved] = item.input
+
+
+def _inode(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of an existing file, None when there is none."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_dev, stat.st_ino
 
 
 def prepare_output_dirs(items: list[Item]) -> None:
@@ -174,6 +224,39 @@ def existing_outputs(item: Item) -> list[Path]:
     return [path for path in item.outputs.values() if path.exists()]
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGINT or SIGTERM stopped a batch.
+
+    exit_code: 128 + the signal number, as a shell reports a process that signal ended (130 for
+    SIGINT, 143 for SIGTERM). reports: set by `run_items`, one per item: the finished ones as
+    they came back, the others marked stopped (nothing of theirs written); None when raised
+    elsewhere (the CLI's signal handler raises it bare). A KeyboardInterrupt, so code that
+    only knows Ctrl-C still stops."""
+
+    def __init__(self, signum: int = signal.SIGINT, reports: list[ItemReport] | None = None):
+        self.signum = int(signum)
+        self.reports = reports
+        self.exit_code = 128 + self.signum
+        super().__init__(signal.Signals(self.signum).name)
+
+
+def _stopped(interrupt: KeyboardInterrupt, items: list[Item], reports: list) -> Stopped:
+    """The Stopped to raise for `interrupt`: every item without a report is marked stopped."""
+    signum = getattr(interrupt, "signum", signal.SIGINT)  # a plain KeyboardInterrupt is Ctrl-C
+    name = signal.Signals(signum).name
+    for index, report in enumerate(reports):
+        if report is None:
+            reports[index] = report = ItemReport(
+                str(items[index].input), exit_code=128 + signum,
+                error=f"{items[index].input}: stopped by {name} before it finished; nothing of it "
+                      "was written (rerun with --skip-existing to resume)")
+            report.details["stopped"] = True
+    return Stopped(signum, reports)
+
+
 def run_items(
     items: list[Item],
     worker,
@@ -189,72 +272,218 @@ def run_items(
     `__call__(item) -> ItemReport`. workers > 1 runs items on that many processes (each calls
     `setup()` once); the reports come back in input order whatever the number of workers.
     RelightWarnings raised while processing an item are recorded into its report.
+
+    An item's outputs appear together or not at all (see `_relight_staged`). A KeyboardInterrupt
+    (Ctrl-C, or the CLI's SIGTERM handler raising `Stopped`) stops the batch at once: the items
+    in flight are discarded, the worker processes killed, and `Stopped` is raised carrying the
+    reports (finished items as they are, the others marked stopped).
     """
     if workers <= 1 or len(items) <= 1:
-        worker.setup()
-        reports = []
-        for item in items:
-            reports.append(_run_one(item, worker, skip_existing, overwrite))
-            if on_done is not None:
-                on_done(reports[-1])
-        return reports
+        return _run_sequential(items, worker, skip_existing, overwrite, on_done)
     return _run_pool(items, worker, workers, skip_existing, overwrite, on_done)
+
+
+def _run_sequential(items, worker, skip_existing, overwrite, on_done) -> list[ItemReport]:
+    reports: list[ItemReport | None] = [None] * len(items)
+    deferral = _SignalDeferral()
+    try:
+        worker.setup()
+        for index, item in enumerate(items):
+            try:
+                reports[index] = _run_one(item, worker, skip_existing, overwrite, commit_guard=deferral)
+            finally:
+                deferral.deliver_pending()  # a signal held since the commit stops the batch here
+            if on_done is not None:
+                on_done(reports[index])
+    except KeyboardInterrupt as interrupt:
+        raise _stopped(interrupt, items, reports) from None
+    return reports
 
 
 def _run_pool(items, worker, workers, skip_existing, overwrite, on_done) -> list[ItemReport]:
     # spawn, not fork: the parent may hold ONNX Runtime / OpenMP threads that fork would break.
     context = multiprocessing.get_context("spawn")
+    commit_lock = context.Lock()  # held by a worker while it renames an item's files into place
+    committed = context.RawArray("b", len(items))  # set under the lock: item i is in place
     reports: list[ItemReport | None] = [None] * len(items)
-    with ProcessPoolExecutor(min(workers, len(items)), mp_context=context,
-                             initializer=_init_pool_worker, initargs=(worker,)) as pool:
-        futures = {pool.submit(_pool_task, item, skip_existing, overwrite): index
-                   for index, item in enumerate(items)}
+    futures = {}
+    pool = ProcessPoolExecutor(min(workers, len(items)), mp_context=context, initializer=_init_pool_worker,
+                               initargs=(worker, commit_lock, committed))
+    try:
+        for index, item in enumerate(items):
+            futures[pool.submit(_pool_task, index, item, skip_existing, overwrite)] = index
         for future in as_completed(futures):
             index = futures[future]
-            try:
-                reports[index] = future.result()
-            except BrokenProcessPool:
-                reports[index] = ItemReport(
-                    str(items[index].input), exit_code=EXIT_ITEMS_FAILED,
-                    error=f"{items[index].input}: the worker process died (out of memory?); "
-                          "retry with fewer --workers")
+            reports[index] = _pool_report(future, items[index])
             if on_done is not None:
                 on_done(reports[index])
+        pool.shutdown(wait=True)
+    except OSError as exc:  # the workers could not be started (EAGAIN, ENOMEM, a process limit)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise RelightError(f"could not start {min(workers, len(items))} worker processes "
+                           f"({exc.strerror or exc})", fix="retry with --workers 1") from exc
+    except KeyboardInterrupt as interrupt:
+        with _signals_ignored():  # a second Ctrl-C must not leave the workers running
+            _kill_workers(pool, commit_lock)
+            pool.shutdown(wait=True, cancel_futures=True)
+            for future, index in futures.items():
+                if reports[index] is None:
+                    reports[index] = _report_after_kill(future, items[index], committed[index])
+        raise _stopped(interrupt, items, reports) from None
     return reports
 
 
+def _pool_report(future, item: Item) -> ItemReport:
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        return ItemReport(
+            str(item.input), exit_code=EXIT_ITEMS_FAILED,
+            error=f"{item.input}: the worker process died (out of memory?); retry with fewer --workers")
+
+
+def _report_after_kill(future, item: Item, committed: bool) -> ItemReport | None:
+    """An uncollected item's report once the workers are dead: its own when it came back in
+    time, a bare one when its files were committed but the report was lost with its worker;
+    None (the item is stopped) otherwise, after removing what it had staged."""
+    if future.done() and not future.cancelled() and future.exception() is None:
+        return future.result()
+    if committed:
+        return ItemReport(str(item.input), {key: str(path) for key, path in item.outputs.items()})
+    _discard_staged(item, leftovers=True)
+    return None
+
+
+def _kill_workers(pool: ProcessPoolExecutor, commit_lock) -> None:
+    """Kill the pool's processes at once (SIGKILL: they ignore SIGINT and SIGTERM), but never
+    while one renames an item's files: holding the commit lock first means a worker dies
+    computing or waiting, leaving only staging files, never half an item's outputs."""
+    locked = commit_lock.acquire(timeout=10)  # a commit takes milliseconds; a dead holder, forever
+    try:
+        processes = list((pool._processes or {}).values())  # private: there is no public handle
+        for process in processes:
+            process.kill()
+        for process in processes:
+            process.join(timeout=10)
+    finally:
+        if locked:
+            commit_lock.release()
+
+
+@contextlib.contextmanager
+def _signals_ignored():
+    """Ignore SIGINT and SIGTERM inside the block (main thread only; elsewhere Python runs no
+    handlers anyway)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, signal.SIG_IGN) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+class _SignalDeferral:
+    """The commit guard of a sequential batch: from the moment an item's files start being
+    renamed into place until its report is recorded, SIGINT and SIGTERM are held (a handler
+    raising in between would leave half an item, or a whole one reported as stopped);
+    `deliver_pending()` puts the usual handlers back and raises what came meanwhile."""
+
+    def __init__(self):
+        self.pending: int | None = None
+        self._previous: dict = {}
+
+    def _hold(self, signum, frame) -> None:
+        self.pending = self.pending or signum
+
+    def __enter__(self):
+        if not self._previous and threading.current_thread() is threading.main_thread():
+            self._previous = {signum: signal.signal(signum, self._hold) for signum in STOP_SIGNALS}
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        pass  # held on until deliver_pending(), once the report is safe
+
+    def deliver_pending(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous = {}
+        if self.pending is not None:
+            signum, self.pending = self.pending, None
+            signal.raise_signal(signum)
+
+
+class _PoolCommit:
+    """The commit guard of a pool worker: holds the batch's commit lock while item `index`'s
+    files are renamed into place and marks the item committed before letting go, so the
+    parent, once it holds the lock, knows which items are whole on disk."""
+
+    def __init__(self, lock, committed, index: int):
+        self.lock, self.committed, self.index = lock, committed, index
+
+    def __enter__(self):
+        self.lock.acquire()
+        return self
+
+    def __exit__(self, exc_type, exc, traceback) -> None:
+        if exc_type is None:
+            self.committed[self.index] = 1
+        self.lock.release()
+
+
 _POOL_WORKER = None
+_COMMIT_LOCK = None
+_COMMITTED = None
 
 
-def _init_pool_worker(worker) -> None:
-    global _POOL_WORKER
+def _init_pool_worker(worker, commit_lock, committed) -> None:
+    global _POOL_WORKER, _COMMIT_LOCK, _COMMITTED
+    # The parent decides when to stop: Ctrl-C reaches the whole process group and SIGTERM may
+    # too (systemd); a worker dying on its own would lose the item it holds half-way.
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
     worker.setup()
-    _POOL_WORKER = worker
+    _POOL_WORKER, _COMMIT_LOCK, _COMMITTED = worker, commit_lock, committed
 
 
-def _pool_task(item: Item, skip_existing: bool, overwrite: bool) -> ItemReport:
-    return _run_one(item, _POOL_WORKER, skip_existing, overwrite)
+def _pool_task(index: int, item: Item, skip_existing: bool, overwrite: bool) -> ItemReport:
+    commit = _PoolCommit(_COMMIT_LOCK, _COMMITTED, index)
+    return _run_one(item, _POOL_WORKER, skip_existing, overwrite, commit_guard=commit)
 
 
-def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool) -> ItemReport:
+def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool,
+             commit_guard=None) -> ItemReport:
     existing = existing_outputs(item)
     if existing and skip_existing and len(existing) == len(item.outputs):
         report = ItemReport(str(item.input), {k: str(v) for k, v in item.outputs.items()})
         report.skipped = "all outputs exist (--skip-existing)"
         return report
+    # --skip-existing completes an item that has some of its layers (a layer added to --outputs
+    # on a rerun, a disk that filled up, files deleted): only the missing layers are written,
+    # the item being recomputed in full. Rewriting all of them would give the same bytes only
+    # under the same options, seed and version, which a rerun need not use; "skip existing"
+    # promises to leave an existing file alone, and its mtime stays valid for make or rsync.
+    todo = {key: path for key, path in item.outputs.items() if not (skip_existing and path.exists())}
     start = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RelightWarning)
         try:
-            if existing and not overwrite:
+            if existing and not overwrite and not skip_existing:
                 raise OutputError(
                     "output exists", path=existing[0], fix="pass --overwrite or --skip-existing"
                 )
-            report = worker(item)
+            report = _relight_staged(Item(item.input, todo), worker,
+                                     commit_guard or contextlib.nullcontext())
         except RelightError as exc:
             report = ItemReport(str(item.input), error=str(exc), exit_code=exc.exit_code)
         except MemoryError:
             report = ItemReport(str(item.input), error=f"{item.input}: out of memory", exit_code=EXIT_ITEMS_FAILED)
+    if report.error is None:
+        report.outputs = {key: str(path) for key, path in item.outputs.items()}
+        if len(todo) < len(item.outputs):
+            report.details["kept"] = [key for key in item.outputs if key not in todo]
     report.warnings.extend(str(w.message) for w in caught if issubclass(w.category, RelightWarning))
     report.seconds.setdefault("total", round(time.perf_counter() - start, 4))
     release_free_memory()
@@ -262,6 +491,52 @@ def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool) -> ItemRe
     if rss is not None:
         report.details["worker_rss_mb"] = rss
     return report
+
+
+def _relight_staged(item: Item, worker, commit_guard) -> ItemReport:
+    """Run `worker` with every output going to a hidden staging file next to its final path,
+    then rename them all into place under `commit_guard` (a lock, or a signal deferral): the
+    item's outputs appear together or not at all, and an item stopped or failed before its
+    commit leaves the files it would have replaced (--overwrite) as they were."""
+    staged = {key: _staging_path(path) for key, path in item.outputs.items()}
+    committed = False
+    try:
+        report = worker(Item(item.input, staged))
+        if report.error is None:
+            with commit_guard:
+                for key, path in item.outputs.items():
+                    _move_into_place(staged[key], path)
+                committed = True
+    finally:
+        if not committed:  # a stop raised mid-write can strand a writer's temporary file too
+            _discard_staged(item, leftovers=True)
+    return report
+
+
+def _move_into_place(staged: Path, path: Path) -> None:
+    try:
+        os.replace(staged, path)
+    except OSError as exc:
+        raise OutputError(f"cannot move the finished output into place ({exc.strerror or exc})",
+                          path=path, fix="check the output folder") from exc
+
+
+def _staging_path(path: Path) -> Path:
+    """Where `path` is written before its item commits: hidden, same folder (so the rename is
+    atomic), same extension (the writers choose the format from it)."""
+    return path.with_name(f".{path.name}.relight-part{path.suffix}")
+
+
+def _discard_staged(item: Item, leftovers: bool = False) -> None:
+    """Remove an unfinished item's staging files; with `leftovers`, also the writers' own
+    temporary files (".<staged name>.tmp-...", io.images._temporary_path), which a killed
+    process, or a stop raised between their creation and their cleanup, leaves behind."""
+    for path in item.outputs.values():
+        staged = _staging_path(path)
+        staged.unlink(missing_ok=True)
+        if leftovers:
+            for temporary in staged.parent.glob("." + glob.escape(staged.name) + ".tmp-*"):
+                temporary.unlink(missing_ok=True)
 
 
 def release_free_memory() -> bool:
@@ -296,20 +571,33 @@ def resident_memory_mb() -> float | None:
 
 def exit_code(reports: list[ItemReport]) -> int:
     """0 when every item is ok; the failures' common exit code when every item failed the same
-    way (e.g. 4: all unreadable); 1 otherwise (some items failed)."""
+    way (e.g. 4: all unreadable); 3 when every item failed and a missing or corrupt model is
+    among the causes (it stops every item: fix it first); 1 otherwise (some items failed). A stopped batch exits
+    128 + the signal number (130 SIGINT, 143 SIGTERM), whatever its items did."""
+    stopped = [r for r in reports if r.details.get("stopped")]
+    if stopped:
+        return stopped[0].exit_code
     failed = [r for r in reports if r.error is not None]
     if not failed:
         return EXIT_OK
     codes = {r.exit_code for r in failed}
     if len(failed) == len(reports) and len(codes) == 1:
         return codes.pop()
+    if len(failed) == len(reports) and EXIT_MISSING in codes:
+        return EXIT_MISSING
     return EXIT_ITEMS_FAILED
 
 
 def summary(reports: list[ItemReport]) -> dict:
-    """The machine-readable report printed by `--json`."""
-    failed = sum(r.error is not None for r in reports)
-    return {"ok": len(reports) - failed, "failed": failed, "items": [r.as_dict() for r in reports]}
+    """The machine-readable report printed by `--json`; "stopped" counts the items a signal
+    kept from finishing (present only when there are some)."""
+    stopped = sum(bool(r.details.get("stopped")) for r in reports)
+    failed = sum(r.error is not None for r in reports) - stopped
+    out = {"ok": len(reports) - failed - stopped, "failed": failed}
+    if stopped:
+        out["stopped"] = stopped
+    out["items"] = [r.as_dict() for r in reports]
+    return out
 
 
 def run_items_ray(

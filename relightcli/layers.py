@@ -56,3 +56,6 @@ ALBEDO_SOURCES = ("ratio", "net")
 
 # Inputs a directory scan picks up (lower-case extensions).
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".exr", ".hdr")
+
+# Files an output image can be written as (relightcli.io.images writes these).
+OUTPUT_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".hdr")

@@ -263,6 +263,11 @@ def _input_mask(image, options: RelightOptions, input_path):
         values = mask_image.alpha if has_alpha else mask_image.rgb[..., 0]
         return values.clip(0.0, 1.0).astype(np.float32, copy=False)
     if image.alpha is not None and float(image.alpha.min()) < 1.0:
+        if not (image.alpha > 0.5).any():  # the crop keeps alpha > 0.5 as the person
+            raise InputError("the image's alpha channel is transparent everywhere (no alpha above "
+                             "0.5): no person to relight",
+                             path=input_path,
+                             fix="save the photo with the person opaque, or without an alpha channel")
         return image.alpha
     return None
 
@@ -270,7 +275,7 @@ def _input_mask(image, options: RelightOptions, input_path):
 def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
     """Write one output layer of a finished frame (atomic writes)."""
     from relightcli.io.images import write_image
-    from relightcli.stages import layer_image, preview_tiles
+    from relightcli.stages import fits_half, layer_image, preview_tiles
 
     suffix = Path(path).suffix.lower()
     if name == "light":
@@ -287,7 +292,8 @@ def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
         hdr = suffix in (".exr", ".hdr")
         array, alpha, srgb = layer_image(name, frame, options, hdr=hdr)
         bits = 8 if name in ("mask", "relit") else 16
-        write_image(path, array, alpha, bits=None if hdr or suffix in (".jpg", ".jpeg") else bits, srgb=srgb)
+        write_image(path, array, alpha, bits=None if hdr or suffix in (".jpg", ".jpeg") else bits, srgb=srgb,
+                    half=fits_half(array))
 
 
 @contextmanager

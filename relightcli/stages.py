@@ -9,6 +9,7 @@ crop's size until an output needs them full frame: a 24 MP frame is 288 MB as fl
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -17,7 +18,7 @@ import numpy as np
 from relightcli import compose
 from relightcli.io.envmap import environment_view
 from relightcli.io.images import row_bands
-from relightcli.errors import RelightError
+from relightcli.errors import RelightError, RelightWarning
 from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR
 
 
@@ -445,7 +446,14 @@ def stage_refine(frame: Frame, options, models: Models) -> None:
 
 
 def stage_compose(frame: Frame, options, models: Models) -> None:
-    """relit = albedo * shading in the crop (pasted back into the full frame by the outputs)."""
+    """relit = albedo * shading in the crop (pasted back into the full frame by the outputs).
+    An all-black target environment lights nothing: shading and relit are black, whatever
+    residual the refinement nets add to zero shading, and a RelightWarning says so."""
+    if not np.any(frame.env):
+        warnings.warn("the target environment map is all black (no light): the relit person "
+                      "is black; check the map and --exposure", RelightWarning, stacklevel=2)
+        frame.shading = np.zeros_like(frame.shading)
+        frame.notes["compose"] = {"black_environment": True}
     frame.relit_crop = compose.relight(frame.albedo, frame.shading)
 
 
@@ -493,22 +501,45 @@ def layer_image(name: str, frame: Frame, options, input_photo_linear: np.ndarray
     raise ValueError(f"{name} is not an image layer")
 
 
+# Display exposure of LDR outputs (see scene_exposure): a white surface facing the camera shows
+# at DISPLAY_KEY (linear), so a person of albedo a facing the light shows at about a, as an
+# incident-light meter exposes; the meter reads at least METER_FLOOR x the brightest direction
+DISPLAY_KEY = 1.0
+METER_FLOOR = 0.1
+
+
+def scene_exposure(env: np.ndarray, exposure_ev: float = 0.0) -> float:
+    """The display exposure of LDR outputs, from the target environment alone, never from the
+    relit result (which would undo --exposure and light a person under a black map).
+
+    An incident-light meter at the subject with its dome toward the camera (+Z), the
+    photographer's rule: the factor that shows an unoccluded white surface facing the camera
+    at DISPLAY_KEY, from its unoccluded shading (never less than METER_FLOOR x that of the
+    brightest direction, so a map lit only from behind is not exposed for darkness). The meter
+    reads the map as it was before --exposure (env / 2 ** exposure_ev), so --exposure
+    multiplies the displayed linear result by exactly 2 ** exposure_ev. On the examples (skier
+    photo, person mean linear luminance 0.089): 0.069 under noon_grass.hdr, 0.056 under
+    kloofendal_overcast.hdr. env: (H, 2H, 3) float32 linear radiance. Returns the factor; 1.0
+    for an all-black map (the person stays black; load_envmap warns).
+    """
+    from relightcli.io.envmap import resample_envmap, texel_directions
+    from relightcli.render.environment import EnvironmentLight
+
+    coarse = resample_envmap(env, min(64, env.shape[0])) / np.float32(2.0 ** exposure_ev)
+    light = EnvironmentLight(coarse)
+    normals = np.concatenate([[[0.0, 0.0, 1.0]], texel_directions(32, 64).reshape(-1, 3)])
+    shading = light.irradiance(normals) @ compose.LUMINANCE
+    meter = max(float(shading[0]), METER_FLOOR * float(shading.max()))
+    return DISPLAY_KEY / meter if meter > 0 and np.isfinite(meter) else 1.0
+
+
 def relit_image(frame: Frame, options, hdr: bool):
-    """The relit person over the requested background. For LDR files the person is exposed so
-    its 95th-percentile luminance matches the input photo's person (background keep) or 0.8
-    (other backgrounds; the environment view gets the same factor, so they stay consistent)."""
+    """The relit person over the requested background, (rgb, alpha, srgb). EXR/HDR files keep
+    the linear relit values; LDR files show them times `scene_exposure` of the target map (the
+    environment view gets the same factor, so they stay consistent; a '#RRGGBB' background and
+    the kept photo are shown as they are)."""
     mask = frame.mask
-    height, width = mask.shape
-    scale = 1.0
-    if not hdr:
-        target = 0.8
-        if options.background == "keep":
-            photo_bands = ((rows, frame.image[rows]) for rows in row_bands(height))
-            photo_luminance = compose.person_luminance(photo_bands, mask)
-            reference = float(np.percentile(photo_luminance, 95.0)) if photo_luminance.size else 0.8
-            target = reference if reference > 0 else 0.8
-        relit_bands = compose.pasted_bands(frame.relit_crop, frame.box, height, width)
-        scale = compose.exposure_for(compose.person_luminance(relit_bands, mask), target)
+    scale = 1.0 if hdr else scene_exposure(frame.env, options.exposure_ev)
     env_view = None
     if options.background == "env":
         env_view = _background_view(frame, options)
@@ -517,6 +548,16 @@ def relit_image(frame: Frame, options, hdr: bool):
                                         photo=frame.image, env_view=env_view, scale=scale, out=env_view)
     frame.notes["relit"] = {"display_exposure": scale}
     return rgb, alpha, True
+
+
+# Largest finite half float: an EXR layer with larger values is written as float32
+HALF_MAX = 65504.0
+
+
+def fits_half(array: np.ndarray) -> bool:
+    """True when every value of the array is finite and within +-HALF_MAX (a half-float EXR
+    keeps it finite), checked a band of rows at a time."""
+    return all(bool(np.all(np.abs(array[rows]) <= HALF_MAX)) for rows in row_bands(array.shape[0]))
 
 
 def _background_view(frame: Frame, options) -> np.ndarray:
@@ -534,10 +575,11 @@ def _background_view(frame: Frame, options) -> np.ndarray:
 
 
 def preview_tiles(frame: Frame, options) -> list:
-    """Input, albedo, normal, shading, relit and the environment, display-ready."""
+    """Input, albedo, normal, shading, relit and the environment, display-ready; shading and
+    relit at the relit output's `scene_exposure`."""
     crop_relit = compose.crop_square(frame.relit, frame.box)
-    shading_scale = compose.display_exposure(frame.shading, frame.crop_mask, 0.8)
-    relit_scale = compose.display_exposure(crop_relit, frame.crop_mask, 0.8)
+    # relit and shading under the scene's exposure (as the relit output), not re-exposed to taste
+    relit_scale = shading_scale = scene_exposure(frame.env, options.exposure_ev)
     env_scale = 0.8 / max(float(np.percentile(frame.env @ compose.LUMINANCE, 99.0)), 1e-12)
     return [
         ("input", compose.to_display(frame.crop)),

@@ -7,10 +7,12 @@ are imported inside the commands, so `relight --help` answers at once.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
 import sys
+import threading
 from pathlib import Path
 
 from relightcli import __version__
@@ -19,6 +21,11 @@ from relightcli.layers import (ALBEDO_SOURCES, DEFAULT_OUTPUTS, DEFAULT_RESOLUTI
                                DEFAULT_TARGET_ERROR, LAYERS, METHODS)
 
 SUBCOMMANDS = ("shade", "info", "eval")
+
+# Caps on the effort options: a typo (an extra zero) should be a usage error, not an hour of
+# work or an out-of-memory crash deep inside OpenCV.
+MAX_SPP = 4096  # 4096 samples of a 512 x 512 crop are already about a billion rays
+RESOLUTION_RANGE = (16, 2048)
 
 DESCRIPTION = """\
 Relight a photo of a person under an HDR environment map (ECCV 2022, "Geometry-aware
@@ -49,7 +56,7 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, writes: bool = True
     the command writes files, so it takes --overwrite."""
     parser.add_argument("--threads", type=_positive_int, default=None, metavar="N",
                         help="threads for ONNX Runtime, OpenCV, OpenImageIO and the ray tracer "
-                             "(default: all cores available)")
+                             "(default and maximum: the cores available; more is lowered to that)")
     parser.add_argument("--json", action="store_true",
                         help="print a machine-readable report on stdout")
     if writes:
@@ -63,15 +70,19 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                         help="albedo: the photo divided by the shading of the estimated input light "
                              "(default; better with our small nets) or the de-lighting net's own (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
-    sampling.add_argument("--spp", type=_positive_int, metavar="N", help="ray-tracing samples per pixel")
+    sampling.add_argument("--spp", type=spp_value, metavar="N",
+                          help=f"ray-tracing samples per pixel, 1..{MAX_SPP}")
     sampling.add_argument("--target-error", type=_positive_float, metavar="E",
                           help="stop each pixel at this relative standard error, at most "
                                f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
     parser.add_argument("--seed", type=seed_value, default=0,
                         help="random seed >= 0 (an item's outputs depend on its input, the options and the seed only)")
-    parser.add_argument("--resolution", type=_positive_int, default=DEFAULT_RESOLUTION, metavar="PX",
-                        help=f"working resolution of the square person crop (default {DEFAULT_RESOLUTION}, "
-                             "the paper's; 256 is twice as fast)")
+    low, high = RESOLUTION_RANGE
+    parser.add_argument("--resolution", type=int_in_range(low, high), default=DEFAULT_RESOLUTION, metavar="PX",
+                        help=f"working resolution of the square person crop, {low}..{high} (default "
+                             f"{DEFAULT_RESOLUTION}, the paper's; 256 is twice as fast). Below {low} "
+                             f"no body is left to reconstruct; above {high} the networks, trained at "
+                             "512, add no detail while time and memory grow with its square")
 
 
 def _positive_int(text: str) -> int:
@@ -79,6 +90,21 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def int_in_range(low: int, high: int):
+    """An argparse type: an integer in [low, high]; the message gives the range."""
+    def parse(text: str) -> int:
+        value = int(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be {low}..{high}, got {value}")
+        return value
+
+    parse.__name__ = "integer"  # argparse names the type in "invalid integer value"
+    return parse
+
+
+spp_value = int_in_range(1, MAX_SPP)
 
 
 def seed_value(text: str) -> int:
@@ -123,7 +149,8 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("--hdr", required=True, metavar="ENV",
                         help="target environment map, equirectangular .hdr/.exr (width = 2 x height)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT",
-                        help="output file (one input) or folder")
+                        help="output file (one input; .png, .jpg, .exr or .hdr) or folder (many "
+                             "inputs, a name without an extension, or a name ending in '/')")
     parser.add_argument("--outputs", type=_outputs, default=DEFAULT_OUTPUTS, metavar="LIST",
                         help=f"comma-separated layers to write (default: relit). {layers_help}")
     parser.add_argument("--recursive", action="store_true", help="descend into sub-folders of INPUT folders")
@@ -199,25 +226,52 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if command == "info":
             args = info_parser().parse_args(argv[1:])
+            _limit_to_cores(args)
             report = run_info(args)
             _print_report(report, args.json)
             return _check_models(report["models"])
         if command == "eval":
             args = eval_parser().parse_args(argv[1:])
+            _limit_to_cores(args)
             return run_eval(args)
         if command == "shade":
             args = shade_parser().parse_args(argv[1:])
+            _limit_to_cores(args)
             return run_shade(args)
         args = relight_parser().parse_args(argv)
+        _limit_to_cores(args)
         return run_relight(args)
     except SystemExit as exc:  # argparse: --help, --version, usage errors
         return EXIT_OK if exc.code in (0, None) else EXIT_USAGE
     except RelightError as exc:
         print(f"relight: error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM during a batch (batch.Stopped)
         print("relight: interrupted", file=sys.stderr)
-        return 130
+        return getattr(exc, "exit_code", 130)
+
+
+def _limit_to_cores(args) -> None:
+    """Lower --threads to the cores this process may use, with a warning: more only thrash
+    the caches, and the default --workers follows --threads (64 processes on 2 cores).
+    Not with --address: the threads then run on the Ray cluster's nodes, not here."""
+    cores = default_threads()
+    if args.threads is not None and args.threads > cores and not getattr(args, "address", None):
+        print(f"relight: warning: --threads {args.threads} is more than the {cores} core(s) "
+              f"available; using {cores}", file=sys.stderr)
+        args.threads = cores
+
+
+def _refuse_alpha_loss(items, background: str) -> None:
+    """--background transparent writes an alpha channel; JPEG and Radiance HDR have none."""
+    if background != "transparent":
+        return
+    for item in items:
+        for name, path in item.outputs.items():
+            if name.split("#")[0] == "relit" and path.suffix.lower() in (".jpg", ".jpeg", ".hdr"):
+                raise UsageError(f"--background transparent needs an alpha channel, which "
+                                 f"{path.suffix} files do not have", path=path,
+                                 fix="write the relit image as .png or .exr, or choose another --background")
 
 
 def run_relight(args) -> int:
@@ -231,7 +285,9 @@ def run_relight(args) -> int:
     threads = args.threads or default_threads()
     exclude = [Path(args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
     found = batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude)
-    items = batch.plan_items(found, args.output, args.outputs, turntable=args.turntable)
+    items = batch.plan_items(found, args.output, args.outputs, turntable=args.turntable,
+                             read_only=[args.hdr] + ([args.mask] if args.mask else []))
+    _refuse_alpha_loss(items, args.background)
     batch.prepare_output_dirs(items)
     env, env_warnings = _load_environment(args)
     # One process per core by default; threads are split so workers x threads <= cores.
@@ -245,15 +301,22 @@ def run_relight(args) -> int:
         turntable=args.turntable)
 
     worker = RelightWorker(env, options)
-    if args.engine == "ray":
-        reports = batch.run_items_ray(
-            items, worker, workers=workers, threads_per_worker=options.threads,
-            address=args.address, skip_existing=args.skip_existing, overwrite=args.overwrite)
-    else:
-        progress = _Progress(len(items), enabled=sys.stderr.isatty() and not args.json)
-        reports = batch.run_items(
-            items, worker, workers=workers,
-            skip_existing=args.skip_existing, overwrite=args.overwrite, on_done=progress.step)
+    progress = _Progress(len(items), enabled=args.engine == "local" and sys.stderr.isatty() and not args.json)
+    try:
+        with _signals_stop_batch():
+            if args.engine == "ray":
+                reports = batch.run_items_ray(
+                    items, worker, workers=workers, threads_per_worker=options.threads,
+                    address=args.address, skip_existing=args.skip_existing, overwrite=args.overwrite)
+            else:
+                reports = batch.run_items(
+                    items, worker, workers=workers,
+                    skip_existing=args.skip_existing, overwrite=args.overwrite, on_done=progress.step)
+    except batch.Stopped as stopped:
+        if stopped.reports is None:  # stopped before any item ran, or by Ray: nothing to report
+            raise
+        reports = stopped.reports  # finished items, the rest marked stopped; exit_code: 130 / 143
+    finally:
         progress.close()
     for report in reports:
         report.warnings[:0] = env_warnings
@@ -263,6 +326,30 @@ def run_relight(args) -> int:
     else:
         _print_human_summary(summary)
     return batch.exit_code(reports)
+
+
+@contextlib.contextmanager
+def _signals_stop_batch():
+    """While a batch runs, SIGINT and SIGTERM raise batch.Stopped in the main thread, so the
+    batch can kill its workers, drop unfinished items and hand back what finished (SIGTERM,
+    from `docker stop` or a service manager, would otherwise end this process on the spot and
+    leave the workers running)."""
+    import signal
+
+    from relightcli.batch import Stopped
+
+    def stop(signum, frame):
+        raise Stopped(signum)
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, stop) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def run_eval(args) -> int:
@@ -362,7 +449,9 @@ def _print_report(report: dict, as_json: bool) -> int:
 
 def _print_human_summary(summary: dict) -> None:
     for item in summary["items"]:
-        if item["error"]:
+        if item.get("stopped"):
+            print(f"stopped {item['input']}", file=sys.stderr)
+        elif item["error"]:
             print(f"FAILED {item['input']}: {item['error']}", file=sys.stderr)
         elif item.get("skipped"):
             print(f"skipped {item['input']}: {item['skipped']}")
@@ -370,11 +459,13 @@ def _print_human_summary(summary: dict) -> None:
             print(f"ok {item['input']} -> {', '.join(item['outputs'].values())}")
         for warning in item["warnings"]:
             print(f"  warning: {warning}", file=sys.stderr)
-    failed = [item["input"] for item in summary["items"] if item["error"]]
+    failed = [item["input"] for item in summary["items"] if item["error"] and not item.get("stopped")]
     line = f"{summary['ok']} ok, {summary['failed']} failed"
+    if summary.get("stopped"):
+        line += f", {summary['stopped']} stopped (rerun with --skip-existing to resume)"
     if failed:
         line += ": " + ", ".join(failed)
-    print(line, file=sys.stderr if failed else sys.stdout)
+    print(line, file=sys.stderr if failed or summary.get("stopped") else sys.stdout)
 
 
 class _Progress:

@@ -13,7 +13,7 @@ import time
 import warnings
 from pathlib import Path
 
-from relightcli.cli import seed_value
+from relightcli.cli import MAX_SPP, seed_value, spp_value
 from relightcli.errors import InputError, OutputError, RelightWarning, UsageError
 
 # Below this many estimated rays forking sampling workers costs more than it saves
@@ -32,8 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rect", nargs=4, type=float, default=None, metavar=("X0", "X1", "Y0", "Y1"),
                         help="world rectangle the image covers (default: mesh x/y bounds + 5%%)")
     amount = parser.add_mutually_exclusive_group()
-    amount.add_argument("--spp", type=int, default=None, metavar="N",
-                        help="samples per pixel (default 64; with --target-error/--time-budget, the cap)")
+    amount.add_argument("--spp", type=spp_value, default=None, metavar="N",
+                        help=f"samples per pixel, 1..{MAX_SPP} (default 64; with --time-budget, the cap)")
     amount.add_argument("--target-error", type=float, default=None, metavar="E",
                         help="stop each pixel at this relative standard error (e.g. 0.02)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="S",

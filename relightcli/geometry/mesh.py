@@ -23,7 +23,7 @@ by `covered_pixels`.
 from __future__ import annotations
 
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 import numpy as np
@@ -96,8 +96,7 @@ def save_mesh(mesh: trimesh.Trimesh, path) -> Path:
     data = mesh.export(file_type=file_type)
     data = data.encode("utf-8") if isinstance(data, str) else data
     try:
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp",
-                                             dir=path.parent)
+        handle, temporary = _create_temporary(path)
     except OSError as error:
         raise OutputError(f"cannot write the mesh: {error.strerror}", path=path,
                           fix="choose a folder that exists and is writable") from error
@@ -113,6 +112,18 @@ def save_mesh(mesh: trimesh.Trimesh, path) -> Path:
 
 
 # ---------------------------------------------------------------------------- internals
+
+def _create_temporary(path: Path) -> tuple[int, str]:
+    """(open descriptor, name) of a new empty file beside `path`. Mode 0o666 under the umask,
+    as the images get (io.images._temporary_path); mkstemp's 0o600 would leave the mesh
+    unreadable to everyone else."""
+    while True:
+        temporary = path.parent / f".{path.name}.{secrets.token_hex(4)}.tmp"
+        try:
+            return os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), str(temporary)
+        except FileExistsError:
+            continue
+
 
 def _check_maps(mask, front_depth, back_depth, mask_threshold):
     """The inside mask (H, W) bool, after checking shapes and finiteness."""

@@ -20,12 +20,24 @@ import math
 import warnings
 
 import numpy as np
+import OpenImageIO as oiio
 import scipy.sparse
 
 from relightcli.errors import InputError, RelightWarning, UsageError
-from relightcli.io.images import LUMINANCE, read_image
+from relightcli.io.images import (
+    _FIX_UNREADABLE,
+    _is_integer,
+    _open_input,
+    _oriented_size,
+    LUMINANCE,
+    read_image,
+    srgb_to_linear,
+)
 
 ENVMAP_MAX_PIXELS = 16384 * 8192
+# Maps are used at most this tall (2H x H texels): see load_envmap and ENVMAP_WORKING_HEIGHT's
+# measurement in tests/io/test_envmap_reduce.py
+ENVMAP_WORKING_HEIGHT = 1024
 _MAX_STOPS = 64
 _FIX_ASPECT = "use an equirectangular (latitude-longitude) map with width = 2 x height"
 # Rec. 709 / sRGB primaries: luminance of linear RGB
@@ -113,12 +125,16 @@ def _repair_texels(env, counts, path):
     largest = max(largest, 0.0)
     repaired = np.where(np.isposinf(env), np.float32(largest), env)
     repaired = np.where(np.isnan(repaired) | (repaired < 0), np.float32(0.0), repaired)
+    _warn_repaired(counts, largest, path, stacklevel=4)
+    return repaired.astype(np.float32)
+
+
+def _warn_repaired(counts, largest, path, stacklevel=3):
     where = "" if path is None else f"{path}: "
     found = ", ".join(f"{n} {kind}" for kind, n in counts.items())
     warnings.warn(
         f"{where}environment map had {found} values; set NaN, -Inf and negatives to 0 and "
-        f"+Inf to the largest finite value ({largest:g})", RelightWarning, stacklevel=3)
-    return repaired.astype(np.float32)
+        f"+Inf to the largest finite value ({largest:g})", RelightWarning, stacklevel=stacklevel)
 
 
 def validate_envmap(env, path=None):
@@ -145,27 +161,140 @@ def validate_envmap(env, path=None):
     return env
 
 
-def load_envmap(path, *, rotate_deg=0.0, exposure_ev=0.0, max_pixels=ENVMAP_MAX_PIXELS):
-    """Read an equirectangular environment map from a file.
+def load_envmap(path, *, rotate_deg=0.0, exposure_ev=0.0, max_pixels=ENVMAP_MAX_PIXELS,
+                working_height=ENVMAP_WORKING_HEIGHT):
+    """Read an equirectangular environment map from a file, at most `working_height` rows.
 
     .hdr and .exr hold linear radiance. An 8/16-bit file (PNG, JPEG, TIFF) is decoded from
-    sRGB by `read_image` and accepted with a RelightWarning: its clipped highlights cannot
-    light like an HDR. Then `validate_envmap`, `rotate_envmap` by `rotate_deg` degrees and
-    `expose` by `exposure_ev` stops. Returns (H, 2H, 3) float32 linear radiance.
+    sRGB and accepted with a RelightWarning: its clipped highlights cannot light like an HDR.
+    A map taller than `working_height` is area-resampled down to it while it is read, a band
+    of rows at a time (`read_reduced_envmap`): radiance x solid angle is kept per channel and
+    per output texel, so a sun keeps all its energy in the texel(s) it falls in. Then
+    `validate_envmap` (NaN, Inf, negatives repaired with a warning; an all-black map warns),
+    `rotate_envmap` by `rotate_deg` degrees and `expose` by `exposure_ev` stops.
+    Returns (h, 2h, 3) float32 linear radiance, h = min(H, working_height).
     Raises InputError when the file cannot be read or is not 2:1.
     """
-    image = read_image(path, max_pixels=max_pixels)
-    if image.encoded:
+    image_input = _open_input(path)
+    try:
+        spec = image_input.spec()
+        width, height = _oriented_size(spec)
+        _check_map_header(spec, width, height, path, max_pixels)
+        if height > working_height and _plain_scanlines(spec):
+            rgb, counts, largest = read_reduced_envmap(image_input, path, working_height)
+            encoded, bits = _is_integer(spec), int(spec.format.size()) * 8
+        else:
+            rgb = counts = None
+    finally:
+        image_input.close()
+    if rgb is None:
+        image = read_image(path, max_pixels=max_pixels)
+        rgb, encoded, bits = image.rgb, image.encoded, image.bits
+    if encoded:
         warnings.warn(
-            f"{path}: {image.bits}-bit environment map read as sRGB and decoded to linear; its "
+            f"{path}: {bits}-bit environment map read as sRGB and decoded to linear; its "
             "clipped highlights (sun, lamps) cannot light like an HDR: use an .hdr or .exr map "
             "for faithful lighting", RelightWarning, stacklevel=2)
-    env = validate_envmap(image.rgb, path=path)
+    if counts is not None and any(counts.values()):
+        _warn_repaired(counts, largest, path)
+    env = validate_envmap(rgb, path=path)
+    if env.shape[0] > working_height:  # a file read whole (an unusual layout): reduce now
+        env = resample_envmap(env, working_height)
+    if not env.any():
+        warnings.warn(
+            f"{path}: environment map is all black (no light): the relit person will be black",
+            RelightWarning, stacklevel=2)
     if rotate_deg:
         env = rotate_envmap(env, rotate_deg)
     if exposure_ev:
         env = expose(env, exposure_ev)
     return env
+
+
+def _check_map_header(spec, width, height, path, max_pixels):
+    """Refuse, from the header alone, a map that is not 2:1 or has more than max_pixels."""
+    if width * height > max_pixels:
+        raise InputError(f"environment map is {width}x{height} = {width * height} pixels, more "
+                         f"than the limit of {max_pixels}", path=path,
+                         fix="downscale the map (it is used at most "
+                             f"{2 * ENVMAP_WORKING_HEIGHT}x{ENVMAP_WORKING_HEIGHT})")
+    if width != 2 * height:
+        raise InputError(f"environment map is {width}x{height} (width x height), not 2:1",
+                         path=path, fix=_FIX_ASPECT)
+
+
+def _plain_scanlines(spec) -> bool:
+    """True when rows can be read in bands as they are: no EXIF turn, data window = display
+    window (anything else is read whole by read_image, which handles it)."""
+    full = (spec.full_x, spec.full_y, spec.full_width, spec.full_height)
+    return (spec.get_int_attribute("Orientation", 1) == 1
+            and (spec.x, spec.y, spec.width, spec.height) == full)
+
+
+def _map_channels(spec):
+    """(first, stop) channel range holding R, G, B (1 channel: gray)."""
+    names = [name.upper() for name in spec.channelnames]
+    if spec.nchannels == 1:
+        return None
+    if all(c in names for c in "RGB"):
+        return [names.index(c) for c in "RGB"]
+    if spec.nchannels >= 3:
+        return [0, 1, 2]
+    return [0, 0, 0]  # gray + alpha
+
+
+def read_reduced_envmap(image_input, path, height, band_rows=64):
+    """Read an open map a band of rows at a time, area-resampling it to (height, 2 height).
+
+    Each band is repaired (NaN, -Inf and negatives -> 0), resampled in u, then added into the
+    output rows it overlaps in t = (1 - cos theta) / 2 (`_area_matrix`): the result equals
+    `resample_envmap` of the whole repaired map, while memory holds one band, never the map.
+    +Inf texels become the largest finite value of the map, as `validate_envmap` does: their
+    cover of each output texel is resampled alongside and scaled at the end.
+    Returns ((height, 2 height, 3) float32, counts of each repaired kind, the largest finite
+    value).
+    """
+    spec = image_input.spec()
+    in_height, in_width = spec.height, spec.width
+    width = 2 * height
+    rows = _area_matrix(_cell_edges_t(height), _cell_edges_t(in_height)).tocsc()
+    cols = _area_matrix(_cell_edges_u(width), _cell_edges_u(in_width))
+    channels = _map_channels(spec)
+    decode = _is_integer(spec)
+    out = np.zeros((height, width * 3), np.float64)
+    inf_cover = None
+    counts = {"NaN": 0, "+Inf": 0, "-Inf": 0, "negative": 0}
+    largest = 0.0
+    for top in range(0, in_height, band_rows):
+        bottom = min(top + band_rows, in_height)
+        band = image_input.read_scanlines(0, 0, top, bottom, 0, 0, spec.nchannels, oiio.FLOAT)
+        if band is None or image_input.has_error:
+            reason = image_input.geterror() or "read failed"
+            raise InputError(f"cannot decode pixels (truncated or corrupt?): {reason}",
+                             path=str(path), fix=_FIX_UNREADABLE)
+        band = np.asarray(band, np.float32).reshape(bottom - top, in_width, spec.nchannels)
+        band = np.repeat(band[..., :1], 3, axis=2) if channels is None else band[..., channels]
+        if decode:
+            band = srgb_to_linear(band)
+        for kind, n in _repair_counts(band).items():
+            counts[kind] += n
+        finite = np.isfinite(band)
+        if finite.any():
+            largest = max(largest, float(band[finite].max()))
+        infinite = np.isposinf(band)
+        band = np.where(finite & (band > 0), band, np.float32(0.0))
+        # columns first (in_width -> width), then the rows' share of each output row
+        by_cols = (cols @ band.transpose(1, 0, 2).reshape(in_width, -1)).reshape(width, -1, 3)
+        by_cols = by_cols.transpose(1, 0, 2).reshape(bottom - top, width * 3)
+        out += rows[:, top:bottom] @ by_cols
+        if infinite.any():
+            inf_cover = np.zeros_like(out) if inf_cover is None else inf_cover
+            cover = (cols @ infinite.transpose(1, 0, 2).reshape(in_width, -1).astype(np.float64))
+            cover = cover.reshape(width, -1, 3).transpose(1, 0, 2).reshape(bottom - top, -1)
+            inf_cover += rows[:, top:bottom] @ cover
+    if inf_cover is not None:
+        out += largest * inf_cover
+    return out.reshape(height, width, 3).astype(np.float32), counts, largest
 
 
 # --- rotation and exposure --------------------------------------------------------------------

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,13 +114,20 @@ def set_io_threads(n: int) -> None:
     oiio.attribute("threads", int(n))
 
 
-def _open_input(path: str | Path) -> oiio.ImageInput:
-    """Open a file for reading (header only), or raise InputError naming what went wrong."""
+def _open_input(path: str | Path, max_pixels: int | None = None) -> oiio.ImageInput:
+    """Open a file for reading (header only), or raise InputError naming what went wrong.
+    `max_pixels`: when OpenImageIO refuses a header for its own size limit, report ours."""
     path = str(path)
     if not os.path.exists(path):
         raise InputError("file not found", path=path, fix="check the path")
     if os.path.isdir(path):
         raise InputError("is a directory, not an image file", path=path, fix="pass an image file")
+    if not os.path.isfile(path):  # a FIFO would block the read, /dev/zero never end
+        raise InputError("not a regular file (a pipe, device or socket)", path=path,
+                         fix="pass an image file saved on disk")
+    if not os.access(path, os.R_OK):
+        raise InputError("permission denied", path=path,
+                         fix="make the file readable (chmod a+r) or run as a user who may read it")
     if os.path.getsize(path) == 0:
         raise InputError("file is empty (0 bytes)", path=path, fix=_FIX_UNREADABLE)
     oiio.geterror()  # drop any stale global error so the message below is about this file
@@ -129,8 +137,18 @@ def _open_input(path: str | Path) -> oiio.ImageInput:
     image_input = oiio.ImageInput.open(path, config)
     if image_input is None:
         reason = oiio.geterror() or "unknown error"
+        _check_claimed_size(reason, path, max_pixels)
         raise InputError(f"not a readable image: {reason}", path=path, fix=_FIX_UNREADABLE)
     return image_input
+
+
+def _check_claimed_size(reason: str, path: str, max_pixels: int | None) -> None:
+    """OpenImageIO refuses a huge header before we see it ("Image claimed to be WxH, ...
+    exceeds the N MB limit"): give the --max-pixels message when the size is over ours."""
+    claimed = re.search(r"claimed to be (\d+)x(\d+)", reason)
+    if claimed and max_pixels is not None:
+        width, height = int(claimed.group(1)), int(claimed.group(2))
+        _refuse_pixel_count(width, height, path, max_pixels)
 
 
 def _oriented_size(spec: oiio.ImageSpec) -> tuple[int, int]:
@@ -152,6 +170,10 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 def _check_pixel_count(spec: oiio.ImageSpec, path: str, max_pixels: int) -> None:
     width, height = _oriented_size(spec)
+    _refuse_pixel_count(width, height, path, max_pixels)
+
+
+def _refuse_pixel_count(width: int, height: int, path: str, max_pixels: int) -> None:
     if width * height > max_pixels:
         raise InputError(
             f"image is {width}x{height} = {width * height} pixels, more than the limit of "
@@ -280,7 +302,7 @@ def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS, srgb: 
     anything that cannot be read.
     """
     path = str(path)
-    image_input = _open_input(path)
+    image_input = _open_input(path, max_pixels)
     try:
         spec = image_input.spec()
         _check_pixel_count(spec, path, max_pixels)
