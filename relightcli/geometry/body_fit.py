@@ -10,15 +10,19 @@ their weights in `FitConfig`:
     world       the hip-centred 3D landmarks (metres) vs BlazePose's world landmarks;
     pose_prior  the rotation away from the closed-form initialisation (radians);
     shape_prior the shape coefficients (units of their N(0, 1) prior);
-    joint_limit the part of each bone's rotation from rest beyond its limit (radians).
-
-The silhouette term (distance transforms of the mask and of the projected body) is not in
-this version; `silhouette` is only checked for its size.
+    joint_limit the part of each bone's rotation from rest beyond its limit (radians);
+    silhouette  two directions against the person's mask, crop pixels: `inside`, the mask's
+                outside distance transform sampled at projected body points (the body may
+                not leave the mask), and `cover`, each sampled mask contour point's distance
+                to the nearest projected body point under a Geman-McClure loss (the body
+                should reach the contour, but clothes and hair make the mask larger than the
+                body, so this direction is weaker and robust).
 
 Stages (SMPLify): 1. initial pose in closed form from the world landmarks' bone directions and
 placement (scale, 2D offset) by weighted linear least squares against the 2D keypoints;
-2. pose + placement; 3. pose + placement + shape, each by scipy.optimize.least_squares with a
-Jacobian by forward differences evaluated as one batch of parameter vectors.
+2. pose + placement; 3. pose + placement + shape, the silhouette terms added when there is a
+usable mask; each by scipy.optimize.least_squares with a Jacobian by forward differences
+evaluated as one batch of parameter vectors.
 
 Only FIT_BONES rotate; every other bone keeps the identity, so its world transform is that of
 its nearest rotating ancestor and the fit needs the transforms of those ~20 bones only.
@@ -31,10 +35,13 @@ pixel (i, j)'s centre at x = -1 + (j + 0.5) 2/R, y = 1 - (i + 0.5) 2/R.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 
 from relightcli.compose import CROP_RECT
 from relightcli.geometry.body_model import LANDMARK_NAMES, BodyModel
@@ -90,6 +97,15 @@ class FitConfig:
     min_core_seen: int = 8                  # of the 12 CORE_LANDMARKS, else no fit
     max_residual_px: float = 6.0            # RMS keypoint residual at 512 px of a converged fit
     bone_limits: dict = field(default_factory=lambda: dict(FIT_BONES))
+    # Silhouette (stage 3 only): weights per mean squared crop pixel over the points of a
+    # direction, so the terms' pull does not grow with the number of points sampled
+    silhouette_inside: float = 32.0         # body points outside the mask, per px^2
+    silhouette_cover: float = 8.0           # mask contour away from the body, per px^2
+    silhouette_cover_scale: float = 3.0     # px, the Geman-McClure loss's scale for `cover`
+    silhouette_spacing: float = 0.06        # m between the body vertices projected (~600)
+    silhouette_contour: int = 300           # mask contour points sampled
+    silhouette_threshold: float = 0.5       # person probability counted as the mask
+    silhouette_min_area: float = 0.005      # mask fraction of the crop below which none is used
 
 
 @dataclass(frozen=True)
@@ -98,7 +114,8 @@ class BodyFit:
     scale (crop world units per metre) such that `model.posed(shape, rotations, translation,
     scale)` gives vertices (V, 3) float64 in the crop's world frame (the photo's person under
     the orthographic crop camera, hips at depth 0); residual_px: RMS visible-keypoint error
-    in crop pixels (nan when nothing was fitted); converged False with a reason on a fallback."""
+    in crop pixels (nan when nothing was fitted); converged False with a reason on a fallback;
+    silhouette_used: whether the silhouette terms took part (a usable mask was given)."""
 
     shape: np.ndarray
     rotations: np.ndarray
@@ -108,6 +125,7 @@ class BodyFit:
     residual_px: float
     converged: bool
     reason: str
+    silhouette_used: bool = False
 
 
 def blazepose_world_to_model(world: np.ndarray) -> np.ndarray:
@@ -267,6 +285,115 @@ def _global_rotation(model: BodyModel, rotations: np.ndarray, bone: int) -> np.n
     return total
 
 
+# --- the silhouette ---------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class _BodyPoints:
+    """The body points projected for the silhouette terms: rest (S, 3) m mean positions,
+    basis (K, 3S) m per shape coefficient, weights (S, B) skinning weights over the fit
+    bones (each skin bone's weight given to its nearest rotating ancestor)."""
+
+    rest: np.ndarray
+    basis: np.ndarray
+    weights: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _Silhouette:
+    """A usable person mask: outside (R, R) float64 crop pixels, each pixel's distance to the
+    mask (0 inside); contour (C, 2) crop world units, sampled mask contour points."""
+
+    outside: np.ndarray
+    contour: np.ndarray
+    points: _BodyPoints
+
+
+@lru_cache(maxsize=4)
+def silhouette_vertices(model: BodyModel, spacing: float) -> np.ndarray:
+    """(S,) int64 vertex ids spread evenly over the mean rest body: the first vertex in each
+    cube of side `spacing` m, so the densely meshed face and hands get no more points than
+    the limbs (0.06 m: about 600 of 13k)."""
+    cells = np.floor(model.mean_vertices / spacing).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def _body_points(model: BodyModel, skeleton: _Skeleton, spacing: float) -> _BodyPoints:
+    ids = silhouette_vertices(model, spacing)
+    slot = {int(b): i for i, b in enumerate(skeleton.ids)}
+
+    def rotating_ancestor(bone: int) -> int:
+        while bone not in slot:
+            bone = int(model.joint_parents[bone])
+        return slot[bone]
+
+    ancestor = np.array([rotating_ancestor(b) for b in range(model.n_joints)])
+    weights = np.zeros((len(ids), len(skeleton.ids)))
+    rows = np.repeat(np.arange(len(ids)), model.skin_bones.shape[1])
+    np.add.at(weights, (rows, ancestor[model.skin_bones[ids]].ravel()),
+              model.skin_weights[ids].ravel())
+    basis = model.shape_basis[:, ids].reshape(model.n_shape, -1)
+    return _BodyPoints(model.mean_vertices[ids], basis, weights)
+
+
+def body_silhouette(model: BodyModel, vertices: np.ndarray, resolution: int) -> np.ndarray:
+    """(R, R) bool: the crop pixels whose centres the body's triangles cover, for posed
+    vertices (V, 3) in the crop's world frame (one convex fill per triangle: cv2.fillPoly
+    on many polygons fills by the even-odd rule, so overlaps would cancel)."""
+    pixels = world_to_pixel(vertices, CROP_RECT, (resolution, resolution))
+    triangles = np.round(pixels[model.triangles] * 16).astype(np.int32)  # 4 fraction bits
+    image = np.zeros((resolution, resolution), np.uint8)
+    for triangle in triangles:
+        cv2.fillConvexPoly(image, triangle, 1, lineType=cv2.LINE_8, shift=4)
+    return image > 0
+
+
+def mask_contour(mask: np.ndarray, count: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """(C <= count, 2) float64 (col, row) pixels evenly spaced along the contours (outer and
+    holes) of a bool mask (R, R), those on the crop's border left out (a person cut by the
+    frame has no contour there) and, given keep (4,) = (col0, row0, col1, row1), those
+    outside that box (other people in the same mask)."""
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return np.zeros((0, 2))
+    points = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64)
+    border = (points == 0).any(axis=1) | (points == mask.shape[0] - 1).any(axis=1)
+    if keep is not None:
+        border |= ((points < keep[:2]) | (points > keep[2:])).any(axis=1)
+    points = points[~border]
+    if len(points) > count:
+        points = points[np.linspace(0, len(points) - 1, count).round().astype(np.int64)]
+    return points
+
+
+def _silhouette(silhouette, model: BodyModel, skeleton: _Skeleton, keypoints, weight,
+                config: FitConfig, resolution: int) -> _Silhouette | None:
+    """The silhouette terms' data for a person probability map (R, R), or None when there is
+    none to use: no map, non-finite values, a mask under config.silhouette_min_area or one
+    with too few contour points off the crop's border."""
+    if silhouette is None:
+        return None
+    probability = np.asarray(silhouette, np.float64)
+    if not np.isfinite(probability).all():
+        return None
+    mask = probability > config.silhouette_threshold
+    if mask.mean() < config.silhouette_min_area:
+        return None
+    # The contour near this person only: the seen keypoints' box, grown by a quarter of its
+    # size for the head, hands and feet beyond the landmarks
+    seen = world_to_pixel(keypoints[weight > 0], CROP_RECT, (resolution, resolution))
+    low, high = seen.min(axis=0), seen.max(axis=0)
+    margin = 0.25 * (high - low).max()
+    contour = mask_contour(mask, config.silhouette_contour,
+                           np.concatenate([low - margin, high + margin]))
+    if len(contour) < 16:
+        return None
+    outside = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2,
+                                    cv2.DIST_MASK_PRECISE).astype(np.float64)
+    return _Silhouette(outside, crop_pixels_to_world(contour, resolution),
+                       _body_points(model, skeleton, config.silhouette_spacing))
+
+
 # --- the batched forward model and the named terms -------------------------------------------
 
 @dataclass(frozen=True, eq=False)
@@ -283,6 +410,7 @@ class _Problem:
     world_weight: np.ndarray   # (33,)
     pixels_per_unit: float
     config: FitConfig
+    silhouette: _Silhouette | None = None  # stage 3 only
 
     @property
     def n_params(self) -> int:
@@ -298,14 +426,13 @@ def _unpack(problem: _Problem, params: np.ndarray):
     return vectors, scale, offset, shape
 
 
-def _posed_landmarks(problem: _Problem, local: np.ndarray, shape: np.ndarray) -> np.ndarray:
-    """(N, 33, 3) m, model frame: the landmarks of N parameter sets, with local rotations
-    (N, B, 3, 3) of the fit bones: G_b = G_a T(h_b) R_b T(-h_b), i.e. Q_b = Q_a R_b and
-    t_b = Q_a (h_b - R_b h_b) + t_a for the nearest rotating ancestor a."""
+def _bone_transforms(problem: _Problem, local: np.ndarray, shape: np.ndarray):
+    """Rotations (N, B, 3, 3) and translations (N, B, 3) m, rest -> posed, of the fit bones for
+    local rotations (N, B, 3, 3) and shapes (N, K): G_b = G_a T(h_b) R_b T(-h_b), i.e.
+    Q_b = Q_a R_b and t_b = Q_a (h_b - R_b h_b) + t_a for the nearest rotating ancestor a."""
     model, skeleton = problem.model, problem.skeleton
     heads = model.mean_joints[skeleton.ids] + np.einsum(
         "nk,kbc->nbc", shape, model.joint_basis[:, skeleton.ids])
-    rest = model.mean_landmarks + np.einsum("nk,klc->nlc", shape, model.landmark_basis)
     offsets = heads - np.einsum("nbij,nbj->nbi", local, heads)
     rotation, translation = local.copy(), offsets.copy()
     for level in skeleton.levels[1:]:
@@ -313,8 +440,30 @@ def _posed_landmarks(problem: _Problem, local: np.ndarray, shape: np.ndarray) ->
         rotation[:, level] = rotation[:, parent] @ local[:, level]
         translation[:, level] = (np.einsum("nbij,nbj->nbi", rotation[:, parent], offsets[:, level])
                                  + translation[:, parent])
-    bone = skeleton.landmark_bone
+    return rotation, translation
+
+
+def _posed_landmarks(problem: _Problem, rotation: np.ndarray, translation: np.ndarray,
+                     shape: np.ndarray) -> np.ndarray:
+    """(N, 33, 3) m, model frame: the landmarks, each moving rigidly with its rotating bone,
+    of bone transforms (N, B, 3, 3), (N, B, 3) and shapes (N, K)."""
+    model, bone = problem.model, problem.skeleton.landmark_bone
+    rest = model.mean_landmarks + np.einsum("nk,klc->nlc", shape, model.landmark_basis)
     return np.einsum("nlij,nlj->nli", rotation[:, bone], rest) + translation[:, bone]
+
+
+def _posed_body_points(points: _BodyPoints, rotation: np.ndarray, translation: np.ndarray,
+                       shape: np.ndarray) -> np.ndarray:
+    """(S, N, 2) m, model frame x, y of the silhouette body points for N parameter sets:
+    linear-blend skinning over the fit bones' transforms (N, B, 3, 3), (N, B, 3), the x and
+    y rows only, blended by one matrix product over the bones."""
+    n, n_bones = rotation.shape[:2]
+    affine = np.concatenate([rotation[:, :, :2], translation[:, :, :2, None]], axis=3)
+    blended = (points.weights @ affine.transpose(1, 0, 2, 3).reshape(n_bones, n * 8))
+    blended = blended.reshape(len(points.rest), n, 2, 4)
+    rest = points.rest[:, None, :] + (shape @ points.basis).reshape(n, -1, 3).transpose(1, 0, 2)
+    return (blended[..., 0] * rest[:, :, None, 0] + blended[..., 1] * rest[:, :, None, 1]
+            + blended[..., 2] * rest[:, :, None, 2] + blended[..., 3])
 
 
 def keypoint_residuals(projected, keypoints, weight, pixels_per_unit) -> np.ndarray:
@@ -346,14 +495,59 @@ def joint_limit_residuals(local, limits) -> np.ndarray:
     return np.maximum(rotation_angle(local) - limits, 0.0)
 
 
+def silhouette_inside_residuals(pixels, outside) -> np.ndarray:
+    """(N, S) crop pixels: the distance of projected body points (N, S, 2) (col, row) beyond the
+    mask's edge, by its outside distance transform (R, R) (distance to the nearest mask pixel
+    centre, 0 inside) sampled bilinearly, at the nearest border pixel beyond the crop."""
+    size = outside.shape[0]
+    # Beyond the crop, the border's value: a mask touching the border may go on past it
+    clamped = np.clip(pixels, 0.0, size - 1.0)
+    base = np.minimum(np.floor(clamped).astype(np.int64), size - 2)
+    fx, fy = (clamped - base).transpose(2, 0, 1)
+    col, row = base[..., 0], base[..., 1]
+    top = (1 - fx) * outside[row, col] + fx * outside[row, col + 1]
+    bottom = (1 - fx) * outside[row + 1, col] + fx * outside[row + 1, col + 1]
+    # The mask's edge lies half a pixel beyond its outermost pixel centres
+    return np.maximum((1 - fy) * top + fy * bottom - 0.5, 0.0)
+
+
+def silhouette_cover_residuals(points, contour, pixels_per_unit, loss_scale) -> np.ndarray:
+    """(N, C) crop pixels: each mask contour point's (C, 2) distance d to the nearest projected
+    body point (N, S, 2), both crop world units, under a Geman-McClure loss of scale c =
+    `loss_scale` px (residual d c / sqrt(d^2 + c^2), at most c): gaps much wider than c, such
+    as loose clothes or hair, hardly pull. The nearest point is found for the first parameter
+    set and kept for the others: they are its forward-difference neighbours, and a minimum's
+    derivative is the derivative at its minimiser."""
+    _, nearest = cKDTree(points[0]).query(contour)
+    distance = np.linalg.norm(points[:, nearest] - contour, axis=-1) * pixels_per_unit
+    return distance * loss_scale / np.sqrt(distance ** 2 + loss_scale ** 2)
+
+
+def _silhouette_residuals(problem: _Problem, rotation, translation, shape, scale,
+                          offset) -> np.ndarray:
+    """(N, S + C) the weighted silhouette terms of N parameter sets, in the crop camera."""
+    cfg, silhouette = problem.config, problem.silhouette
+    body = _posed_body_points(silhouette.points, rotation, translation, shape)
+    projected = (scale[:, None] * body + offset).transpose(1, 0, 2)
+    # Crop world -> (col, row) pixels, centres at integers (face_model.world_to_pixel)
+    pixels = np.stack([(projected[..., 0] + 1.0) * problem.pixels_per_unit - 0.5,
+                       (1.0 - projected[..., 1]) * problem.pixels_per_unit - 0.5], axis=-1)
+    inside = silhouette_inside_residuals(pixels, silhouette.outside)
+    cover = silhouette_cover_residuals(projected, silhouette.contour, problem.pixels_per_unit,
+                                       cfg.silhouette_cover_scale)
+    return np.concatenate([np.sqrt(cfg.silhouette_inside / inside.shape[1]) * inside,
+                           np.sqrt(cfg.silhouette_cover / cover.shape[1]) * cover], axis=1)
+
+
 def _residuals(problem: _Problem, params: np.ndarray) -> np.ndarray:
     """(N, M) the weighted sum-of-squares terms of N parameter sets (N, P)."""
     cfg = problem.config
     vectors, scale, offset, shape = _unpack(problem, params)
     local = problem.initial @ axis_angle_to_matrix(vectors)
-    landmarks = _posed_landmarks(problem, local, shape)
+    rotation, translation = _bone_transforms(problem, local, shape)
+    landmarks = _posed_landmarks(problem, rotation, translation, shape)
     projected = scale[:, None, None] * landmarks[..., :2] + offset[:, None, :]
-    terms = (
+    terms = [
         np.sqrt(cfg.keypoints) * keypoint_residuals(projected, problem.keypoints,
                                                     problem.keypoint_weight,
                                                     problem.pixels_per_unit),
@@ -361,7 +555,10 @@ def _residuals(problem: _Problem, params: np.ndarray) -> np.ndarray:
         np.sqrt(cfg.pose_prior) * pose_prior_residuals(vectors),
         np.sqrt(cfg.shape_prior) * shape_prior_residuals(shape),
         np.sqrt(cfg.joint_limit) * joint_limit_residuals(local, problem.skeleton.limits),
-    )
+    ]
+    if problem.silhouette is not None:
+        terms.append(_silhouette_residuals(problem, rotation, translation, shape, scale,
+                                           offset))
     return np.concatenate(terms, axis=1)
 
 
@@ -400,8 +597,9 @@ def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
 
     keypoints_2d (33, 2) crop pixels (col, row) of an R x R crop; visibility (33,) in [0, 1];
     world (33, 3) BlazePose world landmarks, m, hip-centred, y down (None: missing);
-    silhouette (R, R) person probability or None (not used yet, sets R); resolution R when
-    there is no silhouette. Never raises on missing, NaN or collapsed landmarks: those, and
+    silhouette (R, R) person probability or None (sets R; the mask is where it exceeds
+    config.silhouette_threshold; non-finite or nearly empty maps are not used, see
+    BodyFit.silhouette_used); resolution R when there is no silhouette. Never raises on missing, NaN or collapsed landmarks: those, and
     a person too little seen, seen from behind or sitting, give a rest-pose body with
     converged False and the reason; a fit whose keypoint residual stays above
     config.max_residual_px (at 512 px) comes back with converged False too.
@@ -426,8 +624,10 @@ def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
     # Stage 2: pose and placement; stage 3: everything, shape included
     free = np.arange(problem.n_params) < n_rot + 3
     params = _solve_stage(problem, params, free, config.pose_iterations)
-    params = _solve_stage(problem, params, np.ones_like(free), config.shape_iterations)
-    return _finish(problem, params, resolution)
+    mask = _silhouette(silhouette, model, skeleton, keypoints, weight, config, resolution)
+    params = _solve_stage(replace(problem, silhouette=mask), params, np.ones_like(free),
+                          config.shape_iterations)
+    return replace(_finish(problem, params, resolution), silhouette_used=mask is not None)
 
 
 def _resolution(silhouette, resolution) -> int:

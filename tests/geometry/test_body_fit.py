@@ -1,9 +1,11 @@
 """The body fit (relightcli/geometry/body_fit.py): its rotation helpers, the closed-form
 initialisation, recovery of known poses and shapes from synthetic BlazePose observations of
-the body model itself (observe_landmarks, plus noise), and clean fallbacks on bad inputs."""
+the body model itself (observe_landmarks, plus noise), the silhouette term against masks
+rasterised from the true body, and clean fallbacks on bad inputs."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,11 +14,15 @@ from relightcli.geometry.body_fit import (
     CORE_LANDMARKS,
     aim_limbs,
     axis_angle_to_matrix,
+    body_silhouette,
     fit_body,
     initial_pose,
+    mask_contour,
     observe_landmarks,
     rotation_angle,
     rotation_between,
+    silhouette_cover_residuals,
+    silhouette_inside_residuals,
 )
 from relightcli.geometry.body_model import BodyModel
 
@@ -146,6 +152,108 @@ def test_fitted_mesh_is_aligned_with_the_keypoints_in_the_crop(model):
     # Hips at depth 0 and the body inside the crop square
     assert abs(landmarks[[23, 24], 2].mean()) < 1e-9
     assert np.abs(vertices[:, :2]).max() < 1.2
+
+
+# --- the silhouette --------------------------------------------------------------------------
+
+def test_inside_residual_is_the_distance_beyond_the_mask_edge():
+    outside = np.tile(np.maximum(np.arange(16.0) - 7.0, 0.0), (16, 1))  # mask: columns 0-7
+    pixels = np.array([[[3.0, 5.0], [7.25, 5.0], [10.5, 5.5], [18.0, 5.0]]])
+    np.testing.assert_allclose(silhouette_inside_residuals(pixels, outside),
+                               [[0.0, 0.0, 3.0, 7.5]])  # beyond the crop: the border's
+
+
+def test_cover_residual_is_the_robust_distance_to_the_nearest_body_point():
+    body = np.array([[[0.0, 0.0], [1.0, 0.0]], [[0.0, 0.1], [1.0, 0.0]]])  # 2 parameter sets
+    contour = np.array([[0.0, 0.3], [5.0, 0.0]])
+    residual = silhouette_cover_residuals(body, contour, pixels_per_unit=10.0, loss_scale=3.0)
+    distance = np.array([[3.0, 40.0], [2.0, 40.0]])  # the first set's nearest points, px
+    np.testing.assert_allclose(residual, distance * 3.0 / np.sqrt(distance ** 2 + 9.0))
+    assert residual.max() < 3.0
+
+
+def test_mask_contour_leaves_out_the_crop_border_and_other_people():
+    mask = np.zeros((32, 32), bool)
+    mask[10:32, 4:12] = True   # this person, cut by the bottom edge
+    mask[5:9, 25:30] = True    # someone else
+    points = mask_contour(mask, 1000, keep=np.array([0.0, 0.0, 16.0, 31.0]))
+    assert len(points) > 0
+    assert points[:, 1].max() < 31 and points[:, 0].max() < 12
+    assert mask[points[:, 1].astype(int), points[:, 0].astype(int)].all()
+
+
+def wrong_world(model, truth, seed, sigma=0.2, noise_m=0.03):
+    """BlazePose-like world landmarks of the true person with each limb turned by a random
+    rotation (sigma rad per axis) and noise: a world estimate that is off in depth and angle."""
+    rng = np.random.default_rng(seed + 100)
+    rotations = truth[1].copy()
+    for bone in ("upperarm01.L", "upperarm01.R", "lowerarm01.L", "lowerarm01.R", "spine02",
+                 "upperleg01.L", "upperleg01.R", "lowerleg01.L", "lowerleg01.R"):
+        b = model.joint_names.index(bone)
+        rotations[b] = rotations[b] @ axis_angle_to_matrix(rng.normal(0, sigma, 3))
+    _, world = observe_landmarks(model, truth[0], rotations, truth[2], truth[3], RESOLUTION)
+    return world + rng.normal(0, noise_m, world.shape)
+
+
+def iou(a, b):
+    return (a & b).sum() / (a | b).sum()
+
+
+@pytest.fixture(scope="module")
+def silhouette_cases(model):
+    """Per person (4 poses, 2 seeds): the true mask, the mask dilated by 10 px (clothes), and
+    fits without a silhouette, with the true one and with the dilated one, from 4 px keypoints
+    and a wrong-ish world. Rows: (2D joint cm, 3D joint cm, IoU with the true mask, fitted
+    body area / true area)."""
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (21, 21))
+    rows = {"none": [], "mask": [], "dilated": []}
+    for pose in POSES:
+        for seed in (0, 1):
+            truth, (keypoints, visibility, _) = make_person(model, pose, seed, noise_px=4.0)
+            world = wrong_world(model, truth, seed)
+            vertices, _, _ = model.posed(truth[0], truth[1], truth[2], truth[3])
+            mask = body_silhouette(model, vertices, RESOLUTION)
+            dilated = cv2.dilate(mask.astype(np.uint8), disc).astype(np.float32)
+            for key, silhouette in (("none", None), ("mask", mask.astype(np.float32)),
+                                    ("dilated", dilated)):
+                fit = fit_body(model, keypoints, visibility, world, silhouette,
+                               resolution=RESOLUTION)
+                assert fit.silhouette_used == (silhouette is not None)
+                error = (core_joints(model, fit.shape, fit.rotations)
+                         - core_joints(model, truth[0], truth[1]))
+                body = body_silhouette(model, fit.vertices, RESOLUTION)
+                rows[key].append((100 * np.linalg.norm(error[:, :2], axis=1).mean(),
+                                  100 * np.linalg.norm(error, axis=1).mean(),
+                                  iou(body, mask), body.sum() / mask.sum()))
+    return {key: np.array(value) for key, value in rows.items()}
+
+
+def test_silhouette_reduces_the_joint_error_and_raises_the_iou(silhouette_cases):
+    none, mask = silhouette_cases["none"], silhouette_cases["mask"]
+    # The mask sees the image plane only: the depth error of the wrong world stays
+    assert mask[:, 0].mean() < 0.98 * none[:, 0].mean()   # 2D joint error, cm
+    assert mask[:, 1].mean() < none[:, 1].mean() + 0.05   # 3D joint error, cm
+    assert mask[:, 2].mean() > none[:, 2].mean() + 0.04   # IoU with the true silhouette
+    assert (mask[:, 2] >= none[:, 2] - 0.01).all()
+
+
+def test_a_dilated_silhouette_does_not_inflate_the_body(silhouette_cases):
+    none, dilated = silhouette_cases["none"], silhouette_cases["dilated"]
+    # 10 px of clothes around a ~240 px tall body would add about a third of its area
+    assert dilated[:, 3].max() < 1.2 and dilated[:, 3].mean() < none[:, 3].mean() + 0.05
+    assert dilated[:, 2].mean() > none[:, 2].mean() - 0.03
+
+
+@pytest.mark.parametrize("kind", ["NaN", "empty", "full"])
+def test_unusable_silhouettes_fall_back_to_no_silhouette_term(model, kind):
+    _, (keypoints, visibility, world) = make_person(model, "A-pose", seed=2)
+    silhouette = {"NaN": np.full((RESOLUTION, RESOLUTION), np.nan),
+                  "empty": np.zeros((RESOLUTION, RESOLUTION)),
+                  "full": np.ones((RESOLUTION, RESOLUTION))}[kind]
+    fit = fit_body(model, keypoints, visibility, world, silhouette)
+    plain = fit_body(model, keypoints, visibility, world, resolution=RESOLUTION)
+    assert fit.converged and not fit.silhouette_used
+    np.testing.assert_allclose(fit.vertices, plain.vertices)
 
 
 # --- fallbacks -------------------------------------------------------------------------------
