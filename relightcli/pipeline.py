@@ -30,8 +30,9 @@ STAGE_NEEDS = {
     "ao": ("crop",),  # ambient occlusion net
     "delight": ("geometry",),  # albedo + input-light estimate
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
+    "body": ("people", "crop"),  # body model fitted to each person's pose and silhouette
     "face": ("people", "geometry"),  # face detector + mesh on the people's heads, morphable-model fit
-    "raytrace": ("reconstruct",),  # coarse body shading under the target environment
+    "raytrace": ("reconstruct", "body"),  # coarse body shading under the target environment
     "sh_shading": ("geometry",),  # SH-9/25 irradiance from predicted normals (baselines)
     "refine": ("raytrace", "ao"),  # body refinement net
     "face_refine": ("refine", "face"),  # coarse face shading, face refinement net, composite
@@ -106,9 +107,10 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
             run.remove(stage)
             skipped[stage] = ("models/manifest.json has no face_refine model: the body "
                               "refinement's shading is used over the face too")
-    if "people" in run and has_alpha and "face" not in run:
+    if "people" in run and has_alpha and "face" not in run and "body" not in run:
         run.remove("people")
-        skipped["people"] = "the input brings an alpha channel or --mask (only the face stage needs the people)"
+        skipped["people"] = ("the input brings an alpha channel or --mask (only the face and body "
+                             "stages need the people)")
     return Plan(run, skipped)
 
 
@@ -210,8 +212,9 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
             if on_lighting is not None:
                 on_lighting(index, frame)
     finally:
-        if frame.scene is not None:
-            frame.scene.close()
+        for scene in (frame.scene, frame.body_scene):
+            if scene is not None:
+                scene.close()
     return frame, plan
 
 

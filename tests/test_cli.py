@@ -120,7 +120,8 @@ def test_relit_without_models_exits_3_and_writes_nothing(tmp_path, env_path, cap
     code, report = run_json(capsys, [str(photo), "--hdr", str(env_path), "-o", str(out)])
     assert code == 3
     error = report["items"][0]["error"]
-    assert "manifest.json" in error and "'geometry'" in error
+    # The first model the plan needs: the pose nets, whose people the body fit takes
+    assert "manifest.json" in error and "'person_detector'" in error
     assert not out.exists()
 
 

@@ -29,7 +29,8 @@ def random_models(tmp_path_factory):
     folder = tmp_path_factory.mktemp("models")
     shutil.copy(REPO / "models" / "manifest.json", folder / "manifest.json")
     for name in ("face_model.npz", "face_refine.onnx", "person_detector.onnx", "pose_landmarks.onnx",
-                 "face_detector.onnx", "face_mesh.onnx", "face_correspondence.npz"):  # the face path as shipped
+                 "face_detector.onnx", "face_mesh.onnx", "face_correspondence.npz",  # the face path as shipped
+                 "body_model.npz"):
         shutil.copy(REPO / "models" / name, folder / name)
     torch.manual_seed(0)
     torch.set_num_threads(1)
@@ -49,8 +50,8 @@ def test_every_layer_of_the_example(random_models, tmp_path, capsys, monkeypatch
     report = json.loads(capsys.readouterr().out)
     assert code == 0, report
     item = report["items"][0]
-    assert item["plan"]["run"] == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "face",
-                                   "raytrace", "refine", "face_refine", "compose"]
+    assert item["plan"]["run"] == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "body",
+                                   "face", "raytrace", "refine", "face_refine", "compose"]
     # The skier's face (goggles, 30 px) is found by the face mesh in the head square his pose places
     assert item["stages"]["face"]["path"] == "face mesh" and item["stages"]["face"]["head"] == "person 0"
     assert set(item["seconds"]) >= set(item["plan"]["run"]) | {"load", "write", "total"}

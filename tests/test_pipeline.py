@@ -37,8 +37,8 @@ def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
 
     monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
     p = plan(["relit"])
-    assert p.run == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "face", "raytrace",
-                     "refine", "face_refine", "compose"]
+    assert p.run == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "body", "face",
+                     "raytrace", "refine", "face_refine", "compose"]
     assert "sh_shading" in p.skipped
 
 
@@ -48,8 +48,14 @@ def test_the_face_plans_the_people_although_the_input_brings_a_mask(monkeypatch)
     monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
     assert "people" in plan(["relit"], has_alpha=True).run
     monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: False)
-    p = plan(["relit"], has_alpha=True)
+    p = plan(["relit"], method="sh9", has_alpha=True)
     assert "people" not in p.run and "face" in p.skipped["people"]
+
+
+@pytest.mark.parametrize("method", ["raytrace", "raytrace-norefine"])
+def test_ray_tracing_plans_the_body_fit_and_its_people_although_the_input_brings_a_mask(method):
+    p = plan(["relit"], method=method, has_alpha=True)
+    assert p.run.index("people") < p.run.index("body") < p.run.index("raytrace")
 
 
 def test_no_face_refinement_model_plans_no_face_fit(monkeypatch):
@@ -235,7 +241,8 @@ def test_raytraced_ball_under_constant_light_is_white_furnace():
     env = np.full((8, 16, 3), 1.5, np.float32)
     options = RelightOptions(outputs=("shading", "mesh"), method="raytrace-norefine", resolution=48, spp=8)
     frame, plan = run_stages(image, mask, env, options, ItemReport("x"), SphereModels())
-    assert plan.run == ["mask", "crop", "geometry", "reconstruct", "raytrace"]
+    assert plan.run == ["people", "mask", "crop", "geometry", "reconstruct", "body", "raytrace"]
+    assert frame.bodies == [] and "no converged body fit" in frame.notes["raytrace"]["body"]
     assert frame.mesh.is_watertight
     # The square mask makes a slab around the ball: the ball's top cap sees the whole
     # hemisphere (shading == L exactly), its rim is shadowed by the slab (below L, never above).
@@ -255,6 +262,72 @@ def test_raytraced_ball_under_constant_light_is_white_furnace():
     ball = inside & (length[..., 0] > 0)
     assert used[ball].mean() > 0.9
     np.testing.assert_allclose(frame.hits.normal[used], net[used], atol=1e-5)
+
+
+class PlateBodyModels(SphereModels):
+    """The ball, and as the "body model" a flat plate facing the camera in front of it."""
+
+    def body_model(self):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(triangles=PLATE_FACES)
+
+
+# A 4x4-vertex plate over [-3, 3]^2 at z = 2 (all vertex normals +Z): in front of the ball
+_GRID = np.linspace(-3.0, 3.0, 4)
+PLATE_VERTICES = np.array([(x, y, 2.0) for y in _GRID for x in _GRID])
+PLATE_FACES = np.array([[r * 4 + c, r * 4 + c + 1, (r + 1) * 4 + c + 1] for r in range(3) for c in range(3)]
+                       + [[r * 4 + c, (r + 1) * 4 + c + 1, (r + 1) * 4 + c] for r in range(3) for c in range(3)],
+                       np.int32)
+
+
+def _ball_frame(models, resolution=48):
+    """The stand-in ball reconstructed and ray-traced under a constant environment 1.5."""
+    image = np.full((64, 64, 3), 0.3, np.float32)
+    mask = np.zeros((64, 64), np.float32)
+    mask[8:56, 8:56] = 1.0
+    options = RelightOptions(outputs=("shading",), method="raytrace-norefine", resolution=resolution, spp=8)
+    frame, _ = run_stages(image, mask, np.full((8, 16, 3), 1.5, np.float32), options, ItemReport("x"), models)
+    return frame, options
+
+
+def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction():
+    from types import SimpleNamespace
+
+    from relightcli.stages import BODY_SHADING_WEIGHT, stage_raytrace
+
+    models = PlateBodyModels()
+    frame, options = _ball_frame(models)
+    reconstruction = frame.coarse_shading.copy()
+    # The plate sees the whole hemisphere: its shading is the environment's 1.5 at every pixel
+    frame.bodies = [SimpleNamespace(vertices=PLATE_VERTICES, converged=True)]
+    frame.scene = None  # closed by run_stages: ray-trace anew, now with the body
+    try:
+        stage_raytrace(frame, options, models)
+    finally:
+        frame.scene.close(), frame.body_scene.close()
+    inside = frame.crop_mask > 0.5
+    expected = (1.0 - BODY_SHADING_WEIGHT) * reconstruction + BODY_SHADING_WEIGHT * 1.5
+    np.testing.assert_allclose(frame.coarse_shading[inside], expected[inside], rtol=1e-4)
+    assert frame.notes["raytrace"]["body"]["weight"] == BODY_SHADING_WEIGHT
+    assert frame.notes["raytrace"]["body"]["rays"] > 0
+
+
+def test_a_person_whose_fit_did_not_converge_keeps_the_reconstruction_shading():
+    from types import SimpleNamespace
+
+    from relightcli import compose
+    from relightcli.stages import Frame, PerceptionView, body_shading_pixels
+
+    frame = Frame(image=np.zeros((20, 20, 3), np.float32), mask=None, env=None,
+                  crop_mask=np.ones((10, 10), np.float32), box=compose.CropBox(0, 0, 20, 10))
+    frame.view = PerceptionView(np.zeros((10, 10, 3), np.float32), (0.5, 0.5))  # the photo at half size
+    left, right = np.zeros((10, 10), np.float32), np.zeros((10, 10), np.float32)
+    left[:, :5], right[:, 5:] = 1.0, 1.0
+    frame.people = [SimpleNamespace(pose=SimpleNamespace(mask=left)), SimpleNamespace(pose=SimpleNamespace(mask=right))]
+    frame.bodies = [SimpleNamespace(converged=False), SimpleNamespace(converged=True)]
+    usable = body_shading_pixels(frame)
+    assert not usable[:, :4].any() and usable[:, 6:].all()
 
 
 def test_uncovered_mask_pixels_take_the_nearest_shading():
