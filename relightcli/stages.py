@@ -600,8 +600,7 @@ LIGHTING_STAGES = ("raytrace", "sh_shading", "refine", "face_refine", "compose")
 
 # --- turning a frame into output layers ---------------------------------------------------
 
-def layer_image(name: str, frame: Frame, options, input_photo_linear: np.ndarray | None = None,
-                hdr: bool = False):
+def layer_image(name: str, frame: Frame, options, hdr: bool = False):
     """(array, alpha, srgb) for an image layer, full frame. `hdr`: the file keeps linear HDR
     values (EXR/HDR), so no display exposure is applied."""
     height, width = frame.image.shape[:2]
