@@ -50,9 +50,10 @@ DEFAULT_OUTPUTS = ("relit",)
 # Shading methods: the paper (ray tracing + learned refinement), its ablation, and the SH baselines.
 METHODS = ("raytrace", "raytrace-norefine", "sh9", "sh25")
 
-# Albedo sources: the photo divided by the estimated input shading (default), or the de-lighting
-# net's own albedo head (the paper's)
-ALBEDO_SOURCES = ("ratio", "net")
+# Albedo sources: the photo divided by the ray-traced shading of the input light solved by inverse
+# rendering on the mesh (default), by the SH-9 shading of the de-lighting net's light, or the
+# de-lighting net's own albedo head (the paper's)
+ALBEDO_SOURCES = ("solve", "ratio", "net")
 
 # Inputs a directory scan picks up (lower-case extensions).
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".exr", ".hdr")

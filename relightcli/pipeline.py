@@ -28,9 +28,9 @@ STAGE_NEEDS = {
     "crop": ("mask",),  # square around the person at the working resolution
     "geometry": ("crop",),  # front/back normals and depth
     "ao": ("crop",),  # ambient occlusion net
-    "delight": ("geometry",),  # albedo + input-light estimate
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
     "body": ("people", "crop"),  # body model fitted to each person's pose and silhouette
+    "delight": ("geometry",),  # albedo + input light (--albedo solve: also the mesh, see stage_needs)
     "face": ("people", "geometry"),  # face detector + mesh on the people's heads, morphable-model fit
     "raytrace": ("reconstruct", "body"),  # coarse body shading under the target environment
     "sh_shading": ("geometry",),  # SH-9/25 irradiance from predicted normals (baselines)
@@ -64,7 +64,7 @@ def output_needs(output: str, method: str) -> tuple[str, ...]:
 class RelightOptions:
     outputs: tuple[str, ...] = ("relit",)
     method: str = "raytrace"
-    albedo: str = "ratio"  # layers.ALBEDO_SOURCES
+    albedo: str | None = None  # layers.ALBEDO_SOURCES; None: the method's (default_albedo)
     mask_path: Path | None = None
     rotate_deg: float = 0.0
     exposure_ev: float = 0.0
@@ -78,6 +78,17 @@ class RelightOptions:
     turntable: int = 0  # frames with the environment turned 360/N apart; 0: one image
 
 
+    def __post_init__(self):
+        if self.albedo is None:
+            self.albedo = default_albedo(self.method)
+
+
+def default_albedo(method: str) -> str:
+    """The ray-tracing methods solve the input light on their mesh; the SH baselines, which
+    build no mesh, divide by the SH-9 shading of the net's light."""
+    return "ratio" if method in ("sh9", "sh25") else "solve"
+
+
 @dataclass
 class Plan:
     run: list[str]
@@ -85,6 +96,14 @@ class Plan:
 
     def as_dict(self) -> dict:
         return {"run": self.run, "skipped": self.skipped}
+
+
+def stage_needs(stage: str, options: RelightOptions) -> tuple[str, ...]:
+    """The stages `stage` needs under these options: the de-lighting's light solve
+    (--albedo solve) ray-traces the mesh and the fitted bodies as the shading does."""
+    if stage == "delight" and options.albedo == "solve":
+        return STAGE_NEEDS["delight"] + ("reconstruct", "body")
+    return STAGE_NEEDS[stage]
 
 
 def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
@@ -95,7 +114,7 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
         stage = pending.pop()
         if stage not in needed:
             needed.add(stage)
-            pending.extend(STAGE_NEEDS[stage])
+            pending.extend(stage_needs(stage, options))
     run = [stage for stage in STAGE_NEEDS if stage in needed]
     skipped = {stage: "no requested output needs it" for stage in STAGE_NEEDS if stage not in needed}
     if options.method in ("sh9", "sh25"):

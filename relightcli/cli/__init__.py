@@ -66,9 +66,12 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, writes: bool = True
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     """Albedo source, ray-tracing effort, seed and working resolution (shared by relight and eval)."""
-    parser.add_argument("--albedo", choices=ALBEDO_SOURCES, default="ratio",
-                        help="albedo: the photo divided by the shading of the estimated input light "
-                             "(default; better with our small nets) or the de-lighting net's own (the paper's)")
+    parser.add_argument("--albedo", choices=ALBEDO_SOURCES, default=None,
+                        help="albedo: 'solve' (default of the ray-tracing methods) solves the input light "
+                             "by inverse rendering on the mesh and divides the photo by its ray-traced "
+                             "shading (shadows included); 'ratio' (default of sh9/sh25) divides by the "
+                             "SH-9 shading of the de-lighting net's light; 'net' keeps the de-lighting "
+                             "net's own albedo (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=spp_value, metavar="N",
                           help=f"ray-tracing samples per pixel, 1..{MAX_SPP}")

@@ -1,0 +1,160 @@
+"""The input light by inverse rendering (relightcli.render.inverse): a known light is recovered
+from rendered scenes, a cast shadow leaves the albedo, and degenerate inputs stay finite."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from relightcli.io.envmap import texel_directions
+from relightcli.render.camera import default_rect, render_pixel_geometry
+from relightcli.render.environment import EnvironmentLight
+from relightcli.render.integrator import shade_environment
+from relightcli.render.inverse import light_transport, solve_light
+from relightcli.render.scene import Scene
+from relightcli.render.sh import project_sh, sh_irradiance_shading
+
+from render_testing import body_mesh, merge, quad
+
+RES = 64
+
+
+def sky_light(sun=(0.5, 0.5, 0.7), sun_radiance=5.0) -> np.ndarray:
+    """(16, 32, 3) a sky brighter above (+Y), a warm lobe toward `sun`, a dark ground."""
+    directions = texel_directions(16, 32)
+    up = directions[..., 1]
+    sky = 0.2 + 0.8 * np.clip(up, 0.0, None)
+    toward = np.asarray(sun, float) / np.linalg.norm(sun)
+    lobe = sun_radiance * np.exp((directions @ toward - 1.0) / 0.05)
+    light = sky[..., None] * np.array([0.6, 0.8, 1.0]) + lobe[..., None] * np.array([1.0, 0.9, 0.7])
+    return light.astype(np.float32)
+
+
+def render(scene, light, spp=256):
+    geometry = render_pixel_geometry(scene, default_rect(scene), (RES, RES))
+    result = shade_environment(scene, geometry, EnvironmentLight(light), spp=spp, seed=1)
+    return geometry, result.mean
+
+
+def seen_level(transport, light) -> np.ndarray:
+    """Per channel, the light as the pixels see it: the transport's column sums weighting the
+    texels (a light behind the object is not observable and does not count)."""
+    weights = transport.matrix.sum(axis=0)
+    return weights @ light.reshape(-1, 3)
+
+
+def sphere_scene():
+    return Scene.from_trimesh(trimesh.creation.icosphere(subdivisions=4, radius=1.0))
+
+
+@pytest.mark.parametrize("make_scene", [sphere_scene, lambda: Scene.from_trimesh(body_mesh())],
+                         ids=["sphere", "body"])
+def test_a_known_light_is_recovered_from_a_rendered_object(make_scene):
+    scene = make_scene()
+    truth = sky_light()
+    geometry, shading = render(scene, truth)
+    pixels = np.flatnonzero(geometry.mask)
+    albedo = np.full((pixels.size, 3), 0.5)
+    photo = albedo * shading.reshape(-1, 3)[pixels]
+    transport = light_transport(scene, geometry, pixels, samples=256, seed=3)
+    prior = np.full_like(truth, 0.3 * truth.mean())  # the wrong level and no shape
+    solved = solve_light(transport, photo, albedo, np.ones(pixels.size), prior).light
+    level = seen_level(transport, solved) / seen_level(transport, truth)
+    assert np.all(np.abs(level - 1.0) < 0.10), level
+    # the shading it gives matches the photo's within a few percent over the object
+    _, resolved = render(scene, solved, spp=128)
+    error = np.abs(resolved.reshape(-1, 3)[pixels] - shading.reshape(-1, 3)[pixels]).mean()
+    assert error < 0.06 * shading.reshape(-1, 3)[pixels].mean()
+    scene.close()
+
+
+def shadow_scene():
+    """A wall (the torso) facing the camera, a bar (an arm) in front of it, and a ball at the
+    top right (a head: the many normals a body shows, which tell the light's directions)."""
+    wall = quad(-1.0, 1.0, -1.0, 1.0, 0.0)
+    bar = quad(-0.15, 0.15, -1.0, 1.0, 0.5)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.25)
+    vertices, faces = merge(wall, bar, (ball.vertices + (0.55, 0.6, 0.35), ball.faces))
+    return Scene(vertices, faces)
+
+
+def test_a_cast_shadow_leaves_the_albedo_without_a_step():
+    scene = shadow_scene()
+    # a sun from the front right: the bar's shadow falls on the wall at x in [-0.53, -0.22]
+    truth = sky_light(sun=(0.6, 0.0, 0.8), sun_radiance=200.0) * np.float32(0.2)
+    geometry, shading = render(scene, truth)
+    photo = 0.6 * shading
+    pixels = np.flatnonzero(geometry.mask)
+    transport = light_transport(scene, geometry, pixels, samples=256, seed=3)
+    prior = np.full_like(truth, truth.mean())
+    solved = solve_light(transport, photo.reshape(-1, 3)[pixels], np.full((pixels.size, 3), 0.6),
+                         np.ones(pixels.size), prior).light
+    _, input_shading = render(scene, solved)
+    albedo = photo / np.maximum(input_shading, 1e-6)
+    x = geometry.position[..., 0] + scene.centre[0]
+    on_wall = geometry.mask & (geometry.position[..., 2] + scene.centre[2] < 0.25)
+    y = geometry.position[..., 1] + scene.centre[1]
+    shadow, lit = on_wall & (x > -0.48) & (x < -0.27), on_wall & (x > 0.3) & (x < 0.9) & (y < 0.0)
+    photo_step = photo[shadow].mean() / photo[lit].mean()
+    assert photo_step < 0.5  # the shadow is a real step in the photo
+    sh_albedo = photo / sh_irradiance_shading(project_sh(solved, 2), geometry.normal)
+    assert sh_albedo[shadow].mean() / sh_albedo[lit].mean() < 0.6  # no visibility: the step stays
+    step = albedo[shadow].mean(axis=0) / albedo[lit].mean(axis=0)
+    assert np.all(np.abs(step - 1.0) < 0.1), step
+    scene.close()
+
+
+@pytest.mark.parametrize("case", ["black photo", "clipped photo", "single-texel sun", "flat wall"])
+def test_degenerate_inputs_stay_finite(case):
+    scene = sphere_scene() if case != "flat wall" else Scene(*quad(-1, 1, -1, 1, 0.0))
+    truth = sky_light()
+    if case == "single-texel sun":
+        truth = np.full_like(truth, 1e-3)
+        truth[4, 20] = 1e6  # a million times the sky
+    geometry, shading = render(scene, truth, spp=64)
+    pixels = np.flatnonzero(geometry.mask)
+    photo = 0.5 * shading.reshape(-1, 3)[pixels]
+    weights = np.ones(pixels.size)
+    if case == "black photo":
+        photo = np.zeros_like(photo)
+    if case == "clipped photo":
+        weights = np.zeros(pixels.size)  # every pixel clipped: nothing to fit
+    transport = light_transport(scene, geometry, pixels, samples=64, seed=0)
+    prior = sky_light()
+    solve = solve_light(transport, photo, np.full((pixels.size, 3), 0.5), weights, prior)
+    assert np.all(np.isfinite(solve.light)) and np.all(solve.light >= 0)
+    assert np.all(np.isfinite(solve.residual))
+    if case == "black photo":  # ~no light on what the pixels see (the prior stays behind them)
+        assert np.all(seen_level(transport, solve.light) < 1e-2 * seen_level(transport, prior))
+    if case == "clipped photo":
+        assert solve.pixels == 0 and np.array_equal(solve.light, prior)
+    if case == "single-texel sun":  # found where it is, though smoothed over its neighbours
+        row, col = np.unravel_index(np.argmax(solve.light.sum(axis=-1)), solve.light.shape[:2])
+        assert abs(row - 4) <= 1 and min(abs(col - 20), 32 - abs(col - 20)) <= 1
+    if case == "flat wall":
+        fit = transport.shading(solve.light) * 0.5
+        assert np.abs(fit - photo).mean() < 0.1 * photo.mean()
+    scene.close()
+
+
+def test_the_transport_is_the_same_for_the_same_seed():
+    scene = shadow_scene()  # occluders: the Monte Carlo part of the transport is not empty
+    geometry = render_pixel_geometry(scene, default_rect(scene), (32, 32))
+    pixels = np.flatnonzero(geometry.mask)
+    first = light_transport(scene, geometry, pixels, samples=16, seed=5).matrix
+    again = light_transport(scene, geometry, pixels, samples=16, seed=5).matrix
+    other = light_transport(scene, geometry, pixels, samples=16, seed=6).matrix
+    assert np.array_equal(first, again) and not np.array_equal(first, other)
+    scene.close()
+
+
+def test_an_unoccluded_pixel_sees_its_whole_hemisphere():
+    scene = sphere_scene()
+    geometry = render_pixel_geometry(scene, default_rect(scene), (32, 32))
+    pixels = np.flatnonzero(geometry.mask)
+    rows = light_transport(scene, geometry, pixels, samples=16, seed=5).matrix.sum(axis=1)
+    # 1 under unit radiance everywhere, less only where the tessellated sphere's shading normal
+    # tips a sample below its flat triangle
+    assert np.all(rows <= 1.0 + 1e-4) and np.median(rows) > 0.99
+    scene.close()
