@@ -48,7 +48,8 @@ class Frame:
     face_crop: object | None = None  # its relightcli.geometry.face.CropRect in the working crop
     bodies: list = field(default_factory=list)  # relightcli.geometry.body_fit.BodyFit per person
     body_scene: object | None = None  # Scene of the converged bodies (closed by the pipeline)
-    body_hits: object | None = None  # PixelGeometry: what each crop pixel sees of them
+    body_maps: object | None = None  # relightcli.geometry.body_maps.BodyMaps of those bodies
+    body_hits: object | None = None  # PixelGeometry: what each person pixel sees of them
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
 
     @property
@@ -372,20 +373,25 @@ def build_scene(frame: Frame, options) -> None:
 BODY_SHADING_WEIGHT = 0.5
 
 
-def build_body_scene(frame: Frame, triangles: np.ndarray, options) -> None:
-    """The Embree scene of every converged body fit (frame.bodies) and the camera's primary
-    hits on it, shaded with the body's own normals; nothing when no fit converged. Built once
-    per photo, like build_scene."""
-    from relightcli.render.camera import render_pixel_geometry
-    from relightcli.render.scene import Scene
+def stage_body_maps(frame: Frame, options, models: Models) -> None:
+    """The prior maps of every converged body fit (relightcli.geometry.body_maps): front and
+    back depth and normals over the whole crop, traced once per photo in the Embree scene of
+    those bodies (kept for the ray tracer, closed by the pipeline); body_hits: the front hits
+    at the person's pixels, shaded with the body's own normals. Nothing when no fit converged
+    (the note says why)."""
+    from relightcli.geometry.body_maps import bodies_scene, render_body_maps, restricted
 
     fitted = [fit.vertices for fit in frame.bodies if fit.converged]
     if not fitted:
+        frame.notes["body_maps"] = {"skipped": "no converged body fit"}
         return
-    faces = np.concatenate([triangles + k * len(fitted[0]) for k in range(len(fitted))])
-    frame.body_scene = Scene(np.concatenate(fitted), faces, threads=1)
-    frame.body_hits = render_pixel_geometry(frame.body_scene, compose.CROP_RECT, (options.resolution,) * 2,
-                                            where=frame.crop_mask > 0)
+    frame.body_scene = bodies_scene(fitted, models.body_model().triangles)
+    frame.body_maps = render_body_maps(frame.body_scene, options.resolution)
+    frame.body_hits = restricted(frame.body_maps.front, frame.crop_mask > 0)
+    person = frame.crop_mask > 0.5
+    frame.notes["body_maps"] = {"bodies": len(fitted),
+                                "person_pixels_covered": round(float(frame.body_maps.mask[person].mean()), 4)
+                                if person.any() else 0.0}
 
 
 def body_shading_pixels(frame: Frame) -> np.ndarray:
@@ -410,7 +416,7 @@ def _trace_note(result) -> dict:
 def stage_raytrace(frame: Frame, options, models: Models) -> None:
     """Coarse shading under the target environment, pixel-aligned with the crop: the
     reconstructed mesh ray-traced (build_scene), averaged with equal weights
-    (BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (build_body_scene) over the
+    (BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (stage_body_maps) over the
     people whose body fit converged. Mask pixels a mesh does not cover (limbs thinner than two
     pixels on the reconstruction; clothes and hair around the naked body) take the shading of
     its nearest covered pixel.
@@ -432,7 +438,6 @@ def stage_raytrace(frame: Frame, options, models: Models) -> None:
 
     if frame.scene is None:
         build_scene(frame, options)
-        build_body_scene(frame, models.body_model().triangles, options)
     spp, target = sampling_effort(options)
     light, wanted = models.light(frame.env), frame.crop_mask > 0.5
     result = shade_environment(frame.scene, frame.hits, light, spp=spp, target_error=target,
@@ -585,6 +590,7 @@ STAGES = {
     "delight": stage_delight,
     "reconstruct": stage_reconstruct,
     "body": stage_body,
+    "body_maps": stage_body_maps,
     "face": stage_face,
     "raytrace": stage_raytrace,
     "sh_shading": stage_sh_shading,
@@ -617,7 +623,21 @@ def layer_image(name: str, frame: Frame, options, hdr: bool = False):
         return full(frame.shading), None, True
     if name == "relit":
         return relit_image(frame, options, hdr)
+    if name in ("body_normal", "body_depth"):
+        return full(body_layer(name, frame.body_maps, options.resolution)), None, False
     raise ValueError(f"{name} is not an image layer")
+
+
+def body_layer(name: str, maps, resolution: int) -> np.ndarray:
+    """(R, R, 3) crop of a body prior layer: `body_normal` (front normals as (n + 1) / 2, black
+    off the bodies), `body_depth` (front z, back z, coverage in 0/1); all zero when no body fit
+    converged (maps None)."""
+    if maps is None:
+        return np.zeros((resolution, resolution, 3), np.float32)
+    covered = maps.mask[..., None]
+    if name == "body_normal":
+        return ((maps.front_normal + 1.0) * 0.5 * covered).astype(np.float32)
+    return np.stack([maps.front_depth, maps.back_depth, maps.mask.astype(np.float32)], axis=-1)
 
 
 # Display exposure of LDR outputs (see scene_exposure): a white surface facing the camera shows

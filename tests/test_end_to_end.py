@@ -51,7 +51,7 @@ def test_every_layer_of_the_example(random_models, tmp_path, capsys, monkeypatch
     assert code == 0, report
     item = report["items"][0]
     assert item["plan"]["run"] == ["people", "mask", "crop", "geometry", "ao", "delight", "reconstruct", "body",
-                                   "face", "raytrace", "refine", "face_refine", "compose"]
+                                   "body_maps", "face", "raytrace", "refine", "face_refine", "compose"]
     # The skier's face (goggles, 30 px) is found by the face mesh in the head square his pose places
     assert item["stages"]["face"]["path"] == "face mesh" and item["stages"]["face"]["head"] == "person 0"
     assert set(item["seconds"]) >= set(item["plan"]["run"]) | {"load", "write", "total"}
