@@ -375,19 +375,21 @@ BODY_SHADING_WEIGHT = 0.5
 
 def stage_body_maps(frame: Frame, options, models: Models) -> None:
     """The prior maps of every converged body fit (relightcli.geometry.body_maps): front and
-    back depth and normals over the whole crop, traced once per photo in the Embree scene of
-    those bodies (kept for the ray tracer, closed by the pipeline); body_hits: the front hits
-    at the person's pixels, shaded with the body's own normals. Nothing when no fit converged
-    (the note says why)."""
-    from relightcli.geometry.body_maps import bodies_scene, render_body_maps, restricted
+    back depth and normals at the person's pixels (crop mask > 0), traced once per photo in the
+    Embree scene of those bodies (kept for the ray tracer, closed by the pipeline); body_hits:
+    the front hits, which the ray tracer shades with the body's own normals. Nothing when no
+    fit converged (the note says why). The person's pixels only: at 512 on the skier example the
+    maps take 0.053 s of CPU (0.076 over the whole crop under the bodies' bounds; the ray
+    tracer's own front trace of the bodies, which they replace, took 0.038)."""
+    from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 
     fitted = [fit.vertices for fit in frame.bodies if fit.converged]
     if not fitted:
         frame.notes["body_maps"] = {"skipped": "no converged body fit"}
         return
     frame.body_scene = bodies_scene(fitted, models.body_model().triangles)
-    frame.body_maps = render_body_maps(frame.body_scene, options.resolution)
-    frame.body_hits = restricted(frame.body_maps.front, frame.crop_mask > 0)
+    frame.body_maps = render_body_maps(frame.body_scene, options.resolution, where=frame.crop_mask > 0)
+    frame.body_hits = frame.body_maps.front
     person = frame.crop_mask > 0.5
     frame.notes["body_maps"] = {"bodies": len(fitted),
                                 "person_pixels_covered": round(float(frame.body_maps.mask[person].mean()), 4)

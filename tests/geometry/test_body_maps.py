@@ -12,9 +12,9 @@ import trimesh
 
 from relightcli import compose
 from relightcli.compose import CROP_RECT
-from relightcli.geometry.body_maps import bodies_scene, render_body_maps, restricted
+from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 from relightcli.pipeline import RelightOptions
-from relightcli.render.camera import pixel_centres, render_pixel_geometry
+from relightcli.render.camera import pixel_centres
 from relightcli.render.scene import Scene
 from relightcli.stages import Frame, Models, body_layer, stage_body_maps
 
@@ -40,6 +40,15 @@ def test_a_ball_covers_its_disc(ball_maps):
     assert not ball_maps.mask[~_disc(1.01 * RADIUS)].any()
 
 
+def test_a_ball_is_traced_only_where_asked():
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
+    where = _disc(0.3, 32) | (np.arange(32)[:, None] < 4)
+    with Scene(ball.vertices, ball.faces) as scene:
+        maps = render_body_maps(scene, 32, where=where)
+    np.testing.assert_array_equal(maps.mask, _disc(0.3, 32))
+    assert not maps.front_depth[~where].any() and not maps.back_normal[~where].any()
+
+
 def test_a_balls_depth_is_the_sphere_front_and_back(ball_maps):
     xy = pixel_centres(CROP_RECT, (64, 64))
     inner = _disc(0.9 * RADIUS)
@@ -60,17 +69,6 @@ def test_a_balls_normals_are_unit_radial_and_face_the_cameras(ball_maps):
         np.testing.assert_allclose(normals[inner], radial, atol=0.02)
         assert (side * normals[inner][:, 2] > 0).all()
         assert not normals[~ball_maps.mask].any()
-
-
-def test_restricted_hits_are_those_of_a_restricted_trace():
-    ball = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS)
-    where = _disc(0.3, 32) | (np.arange(32)[:, None] < 4)
-    with Scene(ball.vertices, ball.faces) as scene:
-        full = render_pixel_geometry(scene, CROP_RECT, (32, 32))
-        alone = render_pixel_geometry(scene, CROP_RECT, (32, 32), where=where)
-    cut = restricted(full, where)
-    for name in ("mask", "position", "normal", "geometric_normal"):
-        np.testing.assert_array_equal(getattr(cut, name), getattr(alone, name))
 
 
 def test_two_bodies_share_one_scene():
@@ -99,17 +97,17 @@ def _frame(converged):
     return frame, models
 
 
-def test_the_stage_traces_a_converged_body_and_keeps_its_hits_on_the_person():
+def test_the_stage_traces_a_converged_body_on_the_persons_pixels():
     frame, models = _frame(converged=True)
     try:
         stage_body_maps(frame, RelightOptions(resolution=32), models)
     finally:
         frame.body_scene.close()
     person = frame.crop_mask > 0
-    # The ball (r 0.5) is larger than the person (r 0.4): its maps reach beyond the person,
-    # the ray tracer's hits do not
-    assert (frame.body_maps.mask & ~person).any()
-    np.testing.assert_array_equal(frame.body_hits.mask, frame.body_maps.mask & person)
+    # The ball (r 0.5) is larger than the person (r 0.4): the maps stop at the person
+    np.testing.assert_array_equal(frame.body_maps.mask, person)
+    assert frame.body_hits is frame.body_maps.front
+    assert frame.body_maps.front_depth[person].min() > 0.0  # the ball's front half
     assert frame.notes["body_maps"] == {"bodies": 1, "person_pixels_covered": 1.0}
 
 
