@@ -343,6 +343,16 @@ def test_uncovered_mask_pixels_take_the_nearest_shading():
     np.testing.assert_array_equal(filled[0, :, 0], [1.0, 1.0, 0.0, 3.0, 3.0])
 
 
+def test_the_soft_edge_of_the_person_is_shaded_too():
+    """Pixels the soft crop mask keeps at 0.5 or less (its anti-aliased edge) are multiplied
+    by the mask, not dropped: those the mesh misses take the nearest covered pixel's shading."""
+    frame, _ = _ball_frame(SphereModels())
+    soft = (frame.crop_mask > 0) & (frame.crop_mask <= 0.5)
+    assert (soft & ~frame.hits.mask).any()
+    assert (frame.coarse_shading[soft] > 0).all()
+    assert (frame.shading[soft] > 0).all()
+
+
 def test_turntable_builds_the_scene_once_and_relights_each_frame():
     from relightcli.io.envmap import rotate_envmap
 
