@@ -129,3 +129,12 @@ def test_the_layers_hold_the_normals_and_both_depths(ball_maps):
     np.testing.assert_array_equal(depth[..., 0], ball_maps.front_depth)
     np.testing.assert_array_equal(depth[..., 1], ball_maps.back_depth)
     np.testing.assert_array_equal(depth[..., 2], ball_maps.mask)
+
+
+def test_a_body_off_the_asked_pixels_gives_empty_maps():
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    where = np.zeros((32, 32), bool)
+    where[0, 0] = True  # a corner pixel, far from the ball
+    with Scene(ball.vertices, ball.faces) as scene:
+        maps = render_body_maps(scene, 32, where=where)
+    assert not maps.mask.any() and not maps.front_depth.any() and not maps.back_normal.any()
