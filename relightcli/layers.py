@@ -40,6 +40,12 @@ LAYERS = {
         Layer("shading", "_shading", ".exr", "HDR shading under --hdr, linear EXR"),
         Layer("mask", "_mask", ".png", "person mask in [0,1], 8-bit grey PNG"),
         Layer("mesh", "_mesh", ".ply", "reconstructed, smoothed full-body mesh (PLY)"),
+        Layer("body_normal", "_body_normal", ".png",
+              "the fitted body's camera-facing normals on the person as (n+1)/2, 16-bit PNG "
+              "(black: no body)"),
+        Layer("body_depth", "_body_depth", ".exr",
+              "the fitted body's depth on the person, linear EXR: R front z, G back z (crop units: the crop "
+              "spans [-1, 1], +z toward the camera), B 1 where a body is"),
         Layer("light", "_light", ".hdr", "estimated input lighting, 32x16 lat-long HDR"),
         Layer("preview", "_preview", ".png", "one sheet: input, albedo, normal, shading, relit, env"),
     )

@@ -30,9 +30,10 @@ STAGE_NEEDS = {
     "ao": ("crop",),  # ambient occlusion net
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
     "body": ("people", "crop"),  # body model fitted to each person's pose and silhouette
-    "delight": ("geometry",),  # albedo + input light (--albedo solve: also the mesh, see stage_needs)
+    "body_maps": ("body",),  # the fitted bodies' front/back depth and normals in the crop
+    "delight": ("geometry",),  # albedo + input light (--albedo solve: also the meshes, see stage_needs)
     "face": ("people", "geometry"),  # face detector + mesh on the people's heads, morphable-model fit
-    "raytrace": ("reconstruct", "body"),  # coarse body shading under the target environment
+    "raytrace": ("reconstruct", "body_maps"),  # coarse body shading under the target environment
     "sh_shading": ("geometry",),  # SH-9/25 irradiance from predicted normals (baselines)
     "refine": ("raytrace", "ao"),  # body refinement net
     "face_refine": ("refine", "face"),  # coarse face shading, face refinement net, composite
@@ -54,6 +55,8 @@ def output_needs(output: str, method: str) -> tuple[str, ...]:
         "albedo": ("delight",),
         "light": ("delight",),
         "mesh": ("reconstruct",),
+        "body_normal": ("body_maps",),
+        "body_depth": ("body_maps",),
         "shading": (shading,),
         "relit": ("delight", shading, "compose"),
         "preview": ("geometry", "delight", shading, "compose"),
@@ -102,7 +105,7 @@ def stage_needs(stage: str, options: RelightOptions) -> tuple[str, ...]:
     """The stages `stage` needs under these options: the de-lighting's light solve
     (--albedo solve) ray-traces the mesh and the fitted bodies as the shading does."""
     if stage == "delight" and options.albedo == "solve":
-        return STAGE_NEEDS["delight"] + ("reconstruct", "body")
+        return STAGE_NEEDS["delight"] + ("reconstruct", "body_maps")
     return STAGE_NEEDS[stage]
 
 
@@ -315,7 +318,7 @@ def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
         array, alpha, srgb = layer_image(name, frame, options, hdr=hdr)
         bits = 8 if name in ("mask", "relit") else 16
         write_image(path, array, alpha, bits=None if hdr or suffix in (".jpg", ".jpeg") else bits, srgb=srgb,
-                    half=fits_half(array))
+                    half=fits_half(array) and name != "body_depth")  # depth keeps float32's precision
 
 
 @contextmanager

@@ -48,7 +48,8 @@ class Frame:
     face_crop: object | None = None  # its relightcli.geometry.face.CropRect in the working crop
     bodies: list = field(default_factory=list)  # relightcli.geometry.body_fit.BodyFit per person
     body_scene: object | None = None  # Scene of the converged bodies (closed by the pipeline)
-    body_hits: object | None = None  # PixelGeometry: what each crop pixel sees of them
+    body_maps: object | None = None  # relightcli.geometry.body_maps.BodyMaps of those bodies
+    body_hits: object | None = None  # PixelGeometry: what each person pixel sees of them
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
 
     @property
@@ -449,20 +450,27 @@ def build_scene(frame: Frame, options) -> None:
 BODY_SHADING_WEIGHT = 0.5
 
 
-def build_body_scene(frame: Frame, triangles: np.ndarray, options) -> None:
-    """The Embree scene of every converged body fit (frame.bodies) and the camera's primary
-    hits on it, shaded with the body's own normals; nothing when no fit converged. Built once
-    per photo, like build_scene."""
-    from relightcli.render.camera import render_pixel_geometry
-    from relightcli.render.scene import Scene
+def stage_body_maps(frame: Frame, options, models: Models) -> None:
+    """The prior maps of every converged body fit (relightcli.geometry.body_maps): front and
+    back depth and normals at the person's pixels (crop mask > 0), traced once per photo in the
+    Embree scene of those bodies (kept for the ray tracer, closed by the pipeline); body_hits:
+    the front hits, which the ray tracer shades with the body's own normals. Nothing when no
+    fit converged (the note says why). The person's pixels only: at 512 on the skier example the
+    maps take 0.053 s of CPU (0.076 over the whole crop under the bodies' bounds; the ray
+    tracer's own front trace of the bodies, which they replace, took 0.038)."""
+    from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 
     fitted = [fit.vertices for fit in frame.bodies if fit.converged]
     if not fitted:
+        frame.notes["body_maps"] = {"skipped": "no converged body fit"}
         return
-    faces = np.concatenate([triangles + k * len(fitted[0]) for k in range(len(fitted))])
-    frame.body_scene = Scene(np.concatenate(fitted), faces, threads=1)
-    frame.body_hits = render_pixel_geometry(frame.body_scene, compose.CROP_RECT, (options.resolution,) * 2,
-                                            where=frame.crop_mask > 0)
+    frame.body_scene = bodies_scene(fitted, models.body_model().triangles)
+    frame.body_maps = render_body_maps(frame.body_scene, options.resolution, where=frame.crop_mask > 0)
+    frame.body_hits = frame.body_maps.front
+    person = frame.crop_mask > 0.5
+    frame.notes["body_maps"] = {"bodies": len(fitted),
+                                "person_pixels_covered": round(float(frame.body_maps.mask[person].mean()), 4)
+                                if person.any() else 0.0}
 
 
 def body_shading_pixels(frame: Frame) -> np.ndarray:
@@ -487,10 +495,10 @@ def _trace_note(result) -> dict:
 def stage_raytrace(frame: Frame, options, models: Models) -> None:
     """Coarse shading under the target environment, pixel-aligned with the crop: the
     reconstructed mesh ray-traced (build_scene), averaged with equal weights
-    (BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (build_body_scene) over the
-    people whose body fit converged. Mask pixels a mesh does not cover (limbs thinner than two
-    pixels on the reconstruction; clothes and hair around the naked body) take the shading of
-    its nearest covered pixel.
+    (BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (stage_body_maps) over the
+    people whose body fit converged. Person pixels a mesh does not cover (limbs thinner than two
+    pixels on the reconstruction; clothes and hair around the naked body; the soft edge of the
+    mask, where the smoothed mesh has shrunk) take the shading of the nearest covered pixel.
 
     Measured (issue 18): `relight eval DATA --method raytrace-norefine [--use-gt-mask]`, relit /
     albedo / shading PSNR; the weight chosen on data/evalval512 among 0, 0.3, 0.5, 0.7 and 1
@@ -504,17 +512,29 @@ def stage_raytrace(frame: Frame, options, models: Models) -> None:
     16.68 / 19.63 against 15.97 / 17.92. One scene of reconstruction and bodies (primary hits
     on whichever is in front: val shading 17.57) or the body as a shadow caster behind the
     reconstruction's hits (15.87: it pokes through the clothes) lost: the two surfaces' errors
-    are unlike, and the mean of their shadings beats either."""
+    are unlike, and the mean of their shadings beats either. So did one mesh with every surface
+    (issue 18 step 4, bench/bench_fusion.py, true mask, shading val / test against 19.49 / 18.62
+    shipped): ECON's screened Poisson (pymeshlab, depth 8) of the reconstruction and the bodies'
+    parts neither camera sees 17.55 / 17.37 (3-6 s a photo, watertight 10/16 and 19/20), the
+    union of both solids as one depth mesh 17.52 / 17.24, and either in the mean in place of the
+    reconstruction 19.37 / 18.52 and 19.20 / 18.33; the mesh's cover of the person (96%, the
+    rest filled from the nearest pixel) is not what limits it: smoothing it in depth only (98%)
+    scored 19.46 on val. What Poisson did win, with the predicted mask (shading val 16.55 ->
+    17.05, test 16.89 -> 17.43), came from covering the mask's soft edge (0 < crop mask <= 0.5,
+    multiplied in, not dropped), which was left black where the smoothed meshes shrink from it;
+    filling it from the nearest covered pixel as the rest gives, by `relight eval`, relit /
+    albedo / shading: val true mask 16.58 / 16.19 / 19.56 (was 16.57 / 16.19 / 19.49), val own
+    mask 16.15 / 16.06 / 17.88 (15.80 / 16.06 / 16.55), test true mask 18.05 / 18.70 / 18.67
+    (18.06 / 18.70 / 18.62), test own mask 17.81 / 18.45 / 17.82 (17.48 / 18.45 / 16.89)."""
     ensure_scenes(frame, options, models)
     frame.coarse_shading, frame.notes["raytrace"] = trace_shading(frame, models.light(frame.env), options)
     frame.shading = frame.coarse_shading * frame.crop_mask[..., None]
 
 
 def ensure_scenes(frame: Frame, options, models: Models) -> None:
-    """Build the reconstruction's and the fitted bodies' scenes once per photo."""
+    """Build the reconstruction's scene once per photo (the bodies' is the body_maps stage's)."""
     if frame.scene is None:
         build_scene(frame, options)
-        build_body_scene(frame, models.body_model().triangles, options)
 
 
 def body_weight(frame: Frame) -> np.ndarray:
@@ -525,11 +545,12 @@ def body_weight(frame: Frame) -> np.ndarray:
 def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
     """(shading (R, R, 3), note): the reconstruction ray-traced under `light` (an
     EnvironmentLight), blended with the fitted bodies' (body_weight) where a fit converged;
-    uncovered person pixels take their nearest covered pixel's shading."""
+    person pixels a mesh does not cover, the mask's soft edge included, take their nearest
+    covered pixel's shading (stage_raytrace)."""
     from relightcli.render.integrator import shade_environment
 
     spp, target = sampling_effort(options)
-    wanted = frame.crop_mask > 0.5
+    wanted = frame.crop_mask > 0
     result = shade_environment(frame.scene, frame.hits, light, spp=spp, target_error=target,
                                seed=options.seed, workers=options.threads)
     shading, note = fill_uncovered(result.mean, frame.hits.mask, wanted), _trace_note(result)
@@ -678,6 +699,7 @@ STAGES = {
     "delight": stage_delight,
     "reconstruct": stage_reconstruct,
     "body": stage_body,
+    "body_maps": stage_body_maps,
     "face": stage_face,
     "raytrace": stage_raytrace,
     "sh_shading": stage_sh_shading,
@@ -710,7 +732,21 @@ def layer_image(name: str, frame: Frame, options, hdr: bool = False):
         return full(frame.shading), None, True
     if name == "relit":
         return relit_image(frame, options, hdr)
+    if name in ("body_normal", "body_depth"):
+        return full(body_layer(name, frame.body_maps, options.resolution)), None, False
     raise ValueError(f"{name} is not an image layer")
+
+
+def body_layer(name: str, maps, resolution: int) -> np.ndarray:
+    """(R, R, 3) crop of a body prior layer: `body_normal` (front normals as (n + 1) / 2, black
+    off the bodies), `body_depth` (front z, back z, coverage in 0/1); all zero when no body fit
+    converged (maps None)."""
+    if maps is None:
+        return np.zeros((resolution, resolution, 3), np.float32)
+    covered = maps.mask[..., None]
+    if name == "body_normal":
+        return ((maps.front_normal + 1.0) * 0.5 * covered).astype(np.float32)
+    return np.stack([maps.front_depth, maps.back_depth, maps.mask.astype(np.float32)], axis=-1)
 
 
 # Display exposure of LDR outputs (see scene_exposure): a white surface facing the camera shows

@@ -37,7 +37,7 @@ def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
 
     monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
     p = plan(["relit"])
-    assert p.run == ["people", "mask", "crop", "geometry", "ao", "reconstruct", "body", "delight", "face",
+    assert p.run == ["people", "mask", "crop", "geometry", "ao", "reconstruct", "body", "body_maps", "delight", "face",
                      "raytrace", "refine", "face_refine", "compose"]
     assert "sh_shading" in p.skipped
 
@@ -259,7 +259,7 @@ def test_raytraced_ball_under_constant_light_is_white_furnace():
     env = np.full((8, 16, 3), 1.5, np.float32)
     options = RelightOptions(outputs=("shading", "mesh"), method="raytrace-norefine", resolution=48, spp=8)
     frame, plan = run_stages(image, mask, env, options, ItemReport("x"), SphereModels())
-    assert plan.run == ["people", "mask", "crop", "geometry", "reconstruct", "body", "raytrace"]
+    assert plan.run == ["people", "mask", "crop", "geometry", "reconstruct", "body", "body_maps", "raytrace"]
     assert frame.bodies == [] and "no converged body fit" in frame.notes["raytrace"]["body"]
     assert frame.mesh.is_watertight
     # The square mask makes a slab around the ball: the ball's top cap sees the whole
@@ -312,7 +312,7 @@ def _ball_frame(models, resolution=48):
 def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction():
     from types import SimpleNamespace
 
-    from relightcli.stages import BODY_SHADING_WEIGHT, stage_raytrace
+    from relightcli.stages import BODY_SHADING_WEIGHT, stage_body_maps, stage_raytrace
 
     models = PlateBodyModels()
     frame, options = _ball_frame(models)
@@ -321,6 +321,7 @@ def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction
     frame.bodies = [SimpleNamespace(vertices=PLATE_VERTICES, converged=True)]
     frame.scene = None  # closed by run_stages: ray-trace anew, now with the body
     try:
+        stage_body_maps(frame, options, models)
         stage_raytrace(frame, options, models)
     finally:
         frame.scene.close(), frame.body_scene.close()
@@ -358,6 +359,16 @@ def test_uncovered_mask_pixels_take_the_nearest_shading():
     wanted = np.array([[True, True, False, True, True]])
     filled = fill_uncovered(shading, covered, wanted)
     np.testing.assert_array_equal(filled[0, :, 0], [1.0, 1.0, 0.0, 3.0, 3.0])
+
+
+def test_the_soft_edge_of_the_person_is_shaded_too():
+    """Pixels the soft crop mask keeps at 0.5 or less (its anti-aliased edge) are multiplied
+    by the mask, not dropped: those the mesh misses take the nearest covered pixel's shading."""
+    frame, _ = _ball_frame(SphereModels())
+    soft = (frame.crop_mask > 0) & (frame.crop_mask <= 0.5)
+    assert (soft & ~frame.hits.mask).any()
+    assert (frame.coarse_shading[soft] > 0).all()
+    assert (frame.shading[soft] > 0).all()
 
 
 def test_turntable_builds_the_scene_once_and_relights_each_frame():

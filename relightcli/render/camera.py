@@ -71,22 +71,26 @@ def default_rect(scene: Scene, pad: float = 0.05):
     return (lo[0] - dx, hi[0] + dx, lo[1] - dy, hi[1] + dy)
 
 
-def render_pixel_geometry(scene: Scene, rect, resolution, where=None) -> PixelGeometry:
+def render_pixel_geometry(scene: Scene, rect, resolution, where=None, *,
+                          from_behind: bool = False) -> PixelGeometry:
     """Trace one orthographic primary ray per pixel (a single batch) along -Z; with `where`
     (H, W) bool, only at those pixels (the others see nothing: no work for pixels whose
-    shading nobody uses)."""
+    shading nobody uses). `from_behind`: the rays start behind the scene and run along +Z, so
+    each pixel sees the farthest surface from the camera (a back view in the same pixel grid;
+    normals face -Z, toward those rays)."""
     centres = pixel_centres(rect, resolution)
     height, width = centres.shape[:2]
     traced = np.ones((height, width), bool) if where is None else np.asarray(where, bool)
     if traced.shape != (height, width):
         raise UsageError(f"where is {traced.shape}, the image {height}x{width}")
     # Start above the mesh's local z range, in the local frame (float64 until the cast)
-    z_start = scene.bounds_local[1, 2] + 0.01 * scene.diagonal
+    side = -1.0 if from_behind else 1.0
+    z_start = scene.bounds_local[0 if from_behind else 1, 2] + side * 0.01 * scene.diagonal
     world_xy = centres[traced]
     origins = np.empty((world_xy.shape[0], 3))
     origins[:, :2] = world_xy - scene.centre[:2]
     origins[:, 2] = z_start
-    directions = np.tile(np.array([0.0, 0.0, -1.0]), (origins.shape[0], 1))
+    directions = np.tile(np.array([0.0, 0.0, -side]), (origins.shape[0], 1))
     hits = scene.intersect(origins, directions)
     ns, ng = orient_normals(hits.geometric_normal, scene.shading_normals(hits), directions)
     position = origins + hits.t[:, None].astype(np.float64) * directions

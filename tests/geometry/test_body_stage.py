@@ -100,3 +100,26 @@ def test_the_pipeline_ray_traces_the_fitted_tpose_body():
     inside = frame.crop_mask > 0.5
     assert np.isfinite(frame.shading).all() and frame.shading[inside].min() >= 0
     assert frame.shading[inside].mean() > 0
+
+
+def test_the_body_layers_are_written_from_the_prior_maps_alone(tmp_path):
+    """--outputs body_normal,body_depth plans the body and its maps, no geometry net and no
+    ray tracing; the PNG holds the camera-facing normals, the EXR front z >= back z."""
+    from relightcli.batch import ItemReport
+    from relightcli.pipeline import run_stages, write_layer
+
+    image = read_image(DATA / "tpose_render.png").rgb
+    mask = (cv2.imread(str(DATA / "tpose_render_mask.png"), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
+    options = RelightOptions(outputs=("body_normal", "body_depth"), resolution=128, threads=1)
+    frame, plan = run_stages(image, mask, np.ones((8, 16, 3), np.float32), options, ItemReport("tpose"))
+    assert plan.run == ["people", "mask", "crop", "body", "body_maps"]
+    write_layer("body_normal", tmp_path / "n.png", frame, options)
+    write_layer("body_depth", tmp_path / "d.exr", frame, options)
+    depth = read_image(tmp_path / "d.exr").rgb
+    body = depth[..., 2] > 0.5
+    assert depth.shape[:2] == image.shape[:2] and body.sum() > 0.5 * (mask > 0.5).sum()
+    assert (depth[..., 0][body] >= depth[..., 1][body]).all()
+    assert (depth[..., 0] - depth[..., 1])[body].mean() > 0.05  # crop units: a body has thickness
+    normal = read_image(tmp_path / "n.png", srgb=False).rgb * 2.0 - 1.0
+    assert np.median(normal[..., 2][body]) > 0.5  # the body faces the camera
+    np.testing.assert_allclose(normal[depth[..., 2] == 0], -1.0)  # black off the body
