@@ -13,11 +13,12 @@ near a prior light and smooth across neighbouring texels.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
-from relightcli.io.envmap import direction_to_uv, texel_directions, texel_solid_angles
+from relightcli.io.envmap import direction_to_uv, texel_directions, texel_solid_angles, uv_to_direction
 from relightcli.render.estimators import cosine_directions, ray_origins, visible
 
 LIGHT_HEIGHT = 16
@@ -77,11 +78,46 @@ def light_transport(scene, geometry, pixels: np.ndarray, *, samples: int = 64, s
 
 # Sub-directions per texel side when integrating the unoccluded transport
 TEXEL_SUBDIVISION = 4
+# Rows of the lat-long grid of normals the unoccluded transport is tabulated on (2 x as many columns)
+NORMAL_ROWS = 32
 
 
 def unoccluded_transport(normals: np.ndarray, height: int = LIGHT_HEIGHT) -> np.ndarray:
     """(N, H*W) float32: (1/pi) integral over texel j of max(0, n.w) dw for unit normals (N, 3),
-    TEXEL_SUBDIVISION^2 sub-directions per texel (exact solid angles); each row sums to 1."""
+    bilinear in a table over a NORMAL_ROWS x 2 NORMAL_ROWS lat-long grid of normals
+    (transport_table); each row sums to ~1. For 4000 normals the direct sum
+    (exact_unoccluded_transport) takes 0.16 s, this 0.01 s; its rows differ by at most 0.5%
+    (L1) and a random light's shading by 0.1% (tests/render/test_inverse.py)."""
+    table = transport_table(height)
+    rows, width = table.shape[0] - 1, table.shape[1]
+    u, v = direction_to_uv(np.asarray(normals, np.float64))
+    x, y = u * width - 0.5, np.clip(v * rows, 0.0, rows)
+    col0, row0 = np.floor(x), np.minimum(np.floor(y), rows - 1)
+    fx, fy = (x - col0)[:, None].astype(np.float32), (y - row0)[:, None].astype(np.float32)
+    col0 = col0.astype(np.int64) % width
+    col1, row0 = (col0 + 1) % width, row0.astype(np.int64)
+    top = (1 - fx) * table[row0, col0] + fx * table[row0, col1]
+    bottom = (1 - fx) * table[row0 + 1, col0] + fx * table[row0 + 1, col1]
+    return (1 - fy) * top + fy * bottom
+
+
+@functools.lru_cache(maxsize=2)
+def transport_table(height: int) -> np.ndarray:
+    """(NORMAL_ROWS + 1, 2 NORMAL_ROWS, H*W) float32: the unoccluded transport of the normals at
+    the grid's nodes: rows at polar angles 0, pi/NORMAL_ROWS, ..., pi (the poles included),
+    columns at the centres of 2 NORMAL_ROWS azimuth cells (the DESIGN.md map convention)."""
+    width = 2 * height
+    columns = 2 * NORMAL_ROWS
+    u = (np.arange(columns) + 0.5) / columns
+    v = np.arange(NORMAL_ROWS + 1) / NORMAL_ROWS
+    uu, vv = np.meshgrid(u, v)
+    nodes = uv_to_direction(uu.ravel(), vv.ravel())
+    return exact_unoccluded_transport(nodes, height).reshape(NORMAL_ROWS + 1, columns, height * width)
+
+
+def exact_unoccluded_transport(normals: np.ndarray, height: int = LIGHT_HEIGHT) -> np.ndarray:
+    """(N, H*W) float32, the sum behind `unoccluded_transport`: TEXEL_SUBDIVISION^2
+    sub-directions per texel with their exact solid angles."""
     width, k = 2 * height, TEXEL_SUBDIVISION
     directions = texel_directions(height * k, width * k).reshape(-1, 3).astype(np.float32)
     weight = (texel_solid_angles(height * k, width * k).reshape(-1) / np.pi).astype(np.float32)
@@ -91,6 +127,13 @@ def unoccluded_transport(normals: np.ndarray, height: int = LIGHT_HEIGHT) -> np.
         cosine = np.maximum(normals[start:start + 512] @ directions.T, 0.0) * weight
         out[start:start + 512] = cosine.reshape(-1, height, k, width, k).sum(axis=(2, 4)).reshape(-1, height * width)
     return out
+
+
+@functools.lru_cache(maxsize=2)
+def smoothness_gram(height: int, width: int) -> np.ndarray:
+    """D^T D of `smoothness_operator`, built once per grid."""
+    smooth = smoothness_operator(height, width)
+    return smooth.T @ smooth
 
 
 def smoothness_operator(height: int, width: int) -> np.ndarray:
@@ -140,8 +183,7 @@ def solve_light(transport: Transport, photo: np.ndarray, albedo: np.ndarray, wei
     (tests/render/test_inverse.py), 5% at 0.1."""
     height, width = transport.shape
     omega = (texel_solid_angles(height, width) / texel_solid_angles(height, width).mean()).ravel()
-    smooth = smoothness_operator(height, width)
-    smooth_gram = smooth.T @ smooth
+    smooth_gram = smoothness_gram(height, width)
     w = np.maximum(np.asarray(weights, np.float64), 0.0)
     used = w > 0
     if not used.any():  # nothing to fit (every pixel clipped, say): the prior as it is
