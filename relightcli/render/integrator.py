@@ -19,6 +19,7 @@ the second bounce and "independent" samples run the numpy estimators (forked wor
 
 from __future__ import annotations
 
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -47,6 +48,8 @@ RQMC_GROUPS = 4
 SAMPLERS = ("sobol", "independent")
 # Rays per vectorised round, shared by the processes (bounds memory: ~300 bytes per ray in flight)
 ROUND_RAYS = 1 << 19
+_PRELOAD = None  # the thread of preload_kernels
+_PRELOAD_ERROR = None  # what it raised, if anything (the first render raises it again)
 # Pieces per thread a compiled round is cut into (threads that finish early take more)
 KERNEL_CHUNKS = 4
 # Share of the energy in the brightest 0.1% of texels from which the sun is sampled apart
@@ -199,6 +202,24 @@ def ambient_occlusion(scene: Scene, geometry: PixelGeometry, *, spp: int = 64,
     return shade_environment(scene, geometry, white, spp=spp, target_error=target_error,
                              strategy="cosine", sampler=sampler, seed=seed,
                              max_distance=max_distance, workers=workers)
+
+
+def preload_kernels() -> None:
+    """Start `compile_kernels` on a background thread and return: loading numba and the
+    cached kernels (~0.3-0.45 s of imports in a fresh process) then overlaps the stages
+    before the first render, which waits for it (`_kernels`)."""
+    global _PRELOAD
+    if _PRELOAD is None:
+        _PRELOAD = threading.Thread(target=_preload, name="relightcli-kernels", daemon=True)
+        _PRELOAD.start()
+
+
+def _preload():
+    global _PRELOAD_ERROR
+    try:
+        compile_kernels()
+    except Exception as error:  # noqa: BLE001 - a render retries and raises it where it runs
+        _PRELOAD_ERROR = error
 
 
 def compile_kernels() -> bool:
@@ -411,7 +432,10 @@ def _compiled_round(run, pool, threads, first_pass, passes, rows, groups):
 
 
 def _kernels():
-    """relightcli.render.kernels, or None where numba or Embree's library is missing."""
+    """relightcli.render.kernels, or None where numba or Embree's library is missing. Waits
+    for a `preload_kernels` under way (so that nothing forks while it imports)."""
+    if _PRELOAD is not None and _PRELOAD is not threading.current_thread():
+        _PRELOAD.join()
     try:
         from relightcli.render import kernels
     except (ImportError, OSError):
