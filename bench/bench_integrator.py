@@ -309,34 +309,51 @@ def print_equal_error_ratios(rows, hdr_name):
               f"ratio {ours / theirs:.2f}")
 
 
-def scaling(scene, geometry, args):
-    """Integrator wall time on 1 and 2 worker processes, same render; and, because a shared
-    machine makes wall-clock scaling meaningless, the scaling two idle cores would give from
-    measured CPU times: the calling process samples one share and merges, the forked worker
-    samples the other, so the busier of the two sets the time."""
-    import resource
+def scaling(scene, geometry, args, repeats=3):
+    """Integrator wall time with 1 and 2 workers (threads running the compiled passes), same
+    render, median of `repeats`; and, because a shared machine makes wall-clock scaling
+    meaningless, the time two idle cores would give from measured CPU times: each thread's
+    CPU time in the kernels (the busier thread sets the time) plus the rest of the process's
+    CPU time (serial: rounds, statistics)."""
+    import threading
+    from collections import defaultdict
+
+    from relightcli.render import kernels
 
     light = EnvironmentLight(load_hdr(HDRS["hard_sun"]))
     light.sun_and_sky()
-    times = {}
-    for workers in (1, 2):
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        parent = time.process_time()
-        result = shade_environment(scene, geometry, light, spp=64, seed=1, workers=workers)
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        parent = time.process_time() - parent
-        children = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-        times[workers] = result.seconds
-        print(f"integrator, {workers} worker(s): {result.seconds:.2f} s wall, "
-              f"{result.rays / result.seconds / 1e6:.2f} Mrays/s, CPU: calling process "
-              f"{parent:.2f} s, workers {children:.2f} s")
-        if workers == 1:
-            single_cpu = parent
-        else:  # the calling process samples a share too: the slower process sets the time
-            ideal = max(parent, children / (workers - 1))
-            print(f"  on 2 idle cores (from CPU times, the busier process): {ideal:.2f} s, "
-                  f"{single_cpu / ideal:.2f}x")
-    print(f"integrator scaling 1 -> 2 workers, wall clock: {times[1] / times[2]:.2f}x")
+    kernel = kernels.shade_rows
+    per_thread = defaultdict(float)
+
+    def timed_kernel(*a):
+        start = time.thread_time()
+        try:
+            return kernel(*a)
+        finally:
+            per_thread[threading.get_ident()] += time.thread_time() - start
+
+    kernels.shade_rows = timed_kernel
+    try:
+        walls, ideals = {}, {}
+        for workers in (1, 2):
+            runs = []
+            for _ in range(repeats):
+                per_thread.clear()
+                cpu = time.process_time()
+                result = shade_environment(scene, geometry, light, spp=64, seed=1, workers=workers)
+                cpu = time.process_time() - cpu
+                in_kernels = sum(per_thread.values())
+                runs.append((result.seconds, cpu - in_kernels + max(per_thread.values()), cpu,
+                             result.rays / result.seconds / 1e6))
+            wall, ideal, cpu, rate = (float(np.median(column)) for column in zip(*runs))
+            walls[workers], ideals[workers] = wall, ideal
+            print(f"integrator, {workers} worker(s): {wall:.2f} s wall (median of {repeats}), "
+                  f"{rate:.2f} Mrays/s, process CPU {cpu:.2f} s, on idle cores (from CPU times) "
+                  f"{ideal:.2f} s")
+    finally:
+        kernels.shade_rows = kernel
+    print(f"integrator scaling 1 -> 2 workers: wall clock {walls[1] / walls[2]:.2f}x, "
+          f"on idle cores (from CPU times) {ideals[1] / ideals[2]:.2f}x")
 
 
 def headline(args):
