@@ -137,12 +137,10 @@ class RelightWorker:
         import cv2
 
         from relightcli.io.images import set_io_threads
-        from relightcli.render.integrator import preload_kernels
         from relightcli.stages import Models
 
         cv2.setNumThreads(self.options.threads)
         set_io_threads(self.options.threads)
-        preload_kernels()  # the ray tracer's compiled kernels load while the nets run
         self.models = Models(self.options.threads)
 
     def __call__(self, item: Item) -> ItemReport:

@@ -28,8 +28,6 @@ CONSTANT_TOLERANCE = 1e-6
 # columns, summed over the map area-resampled to TEXEL_ROWS x 2 TEXEL_ROWS texels. Bilinear
 # lookups are within 0.5% of the full-resolution sum on studio, sun and overcast maps (tested).
 IRRADIANCE_NODES = 128
-# Texels per entry of the compiled sampler's guide table (sampling_tables)
-GUIDE_BIN = 8
 IRRADIANCE_TEXEL_ROWS = 64
 
 
@@ -86,7 +84,6 @@ class EnvironmentLight:
         self.is_sun_only = (not self.is_black) and self.sun_fraction >= SUN_ENERGY_FRACTION
         self._sun_and_sky = None
         self._irradiance = None
-        self._tables = None
 
     def irradiance(self, normals) -> np.ndarray:
         """Unoccluded shading (1/pi) integral of L(w) max(0, n.w) dw (DESIGN.md units) for unit
@@ -127,29 +124,6 @@ class EnvironmentLight:
     @property
     def shape(self):
         return self.radiance.shape
-
-    def sampling_tables(self) -> tuple:
-        """What compiled kernels read (relightcli.render.kernels), built on first use: (cdf
-        over all H * W texels in row-major order (H * W + 1,) float64 (unlit texels: empty
-        bins, never chosen), a guide table (H * W / GUIDE_BIN + 1,) int32 (the bin of each
-        key j / G: a search reads a cache line or two), every texel's radiance and density
-        over (u, v) (H * W, 4) float32 (one record: one cache line per lookup), width,
-        height). Compact on purpose: a sample's lookups are dependent loads, and the tables
-        of a 1k map (14 MB) stay in the last-level cache. Measured, noon sky, one sample
-        drawn: 135 ns with separate lit-texel tables (20 MB), 249 ns with one 64-byte
-        record per lit texel (34 MB), 122 ns with these."""
-        if self._tables is None:
-            height, width, _ = self.radiance.shape
-            energy = np.zeros(height * width)
-            energy[self._lit] = np.diff(self._cdf)
-            cdf = np.concatenate([[0.0], np.cumsum(energy)])
-            cdf[self._lit[-1] + 1:] = 1.0  # past the last lit texel exactly 1 (round-off)
-            keys = np.linspace(0.0, 1.0, max(2, energy.size // GUIDE_BIN + 1))
-            guide = np.maximum(np.searchsorted(cdf, keys, side="right") - 1, 0)
-            texels = np.concatenate([self.radiance.reshape(-1, 3),
-                                     self.texel_pdf_uv.reshape(-1, 1)], axis=1)
-            self._tables = (cdf, guide.astype(np.int32), texels.astype(np.float32), width, height)
-        return self._tables
 
     def eval(self, directions) -> np.ndarray:
         """Radiance (..., 3) float32 arriving from unit directions (..., 3) (nearest texel)."""

@@ -11,19 +11,12 @@ shifts (pass k uses point k // R of copy k % R). The copies' means are independe
 unbiased, so their spread gives an honest standard error (the spread of single Sobol passes
 would overstate it: the points are better spread than independent ones). "independent"
 draws i.i.d. uniforms and estimates the standard error from the pass values.
-
-Direct light with "sobol" samples runs compiled (relightcli.render.kernels: the estimators
-of relightcli.render.estimators fused per pixel, shadow rays without the GIL, threads);
-the second bounce and "independent" samples run the numpy estimators (forked workers).
 """
 
 from __future__ import annotations
 
-import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 from scipy.stats import qmc
@@ -48,10 +41,6 @@ RQMC_GROUPS = 4
 SAMPLERS = ("sobol", "independent")
 # Rays per vectorised round, shared by the processes (bounds memory: ~300 bytes per ray in flight)
 ROUND_RAYS = 1 << 19
-_PRELOAD = None  # the thread of preload_kernels
-_PRELOAD_ERROR = None  # what it raised, if anything (the first render raises it again)
-# Pieces per thread a compiled round is cut into (threads that finish early take more)
-KERNEL_CHUNKS = 4
 # Share of the energy in the brightest 0.1% of texels from which the sun is sampled apart
 SUN_SPLIT_FRACTION = 0.1
 # Pixels darker than this share of the median count as converged at this absolute error
@@ -153,10 +142,9 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     the pixels with the largest relative error.
     bounces: 1 (direct) or 2 (plus one diffuse interreflection with `albedo`, a float or an
     (H, W, 3) image aligned with the camera). max_distance: occluders farther than this
-    (local units) are ignored. workers: threads sampling in parallel (compiled passes: direct
-    light with the "sobol" sampler), else processes (forked per render; worth it from about
-    a second of work). control_variate: see `plan_lighting` (off only to measure what it
-    brings).
+    (local units) are ignored. workers: processes sampling in parallel (forked per render;
+    worth it from about a second of work). control_variate: see `plan_lighting` (off only
+    to measure what it brings).
     """
     start = time.perf_counter()
     _check_options(spp, target_error, time_budget, bounces, sampler, min_spp)
@@ -202,42 +190,6 @@ def ambient_occlusion(scene: Scene, geometry: PixelGeometry, *, spp: int = 64,
     return shade_environment(scene, geometry, white, spp=spp, target_error=target_error,
                              strategy="cosine", sampler=sampler, seed=seed,
                              max_distance=max_distance, workers=workers)
-
-
-def preload_kernels() -> None:
-    """Start `compile_kernels` on a background thread and return: loading numba and the
-    cached kernels (~0.3-0.45 s of imports in a fresh process) then overlaps the stages
-    before the first render, which waits for it (`_kernels`)."""
-    global _PRELOAD
-    if _PRELOAD is None:
-        _PRELOAD = threading.Thread(target=_preload, name="relightcli-kernels", daemon=True)
-        _PRELOAD.start()
-
-
-def _preload():
-    global _PRELOAD_ERROR
-    try:
-        compile_kernels()
-    except Exception as error:  # noqa: BLE001 - a render retries and raises it where it runs
-        _PRELOAD_ERROR = error
-
-
-def compile_kernels() -> bool:
-    """Compile (or load from numba's cache) the kernels a render runs, on a tiny scene, so
-    the first real render does not wait on it: for the Docker image's build, which fills
-    NUMBA_CACHE_DIR. Returns whether compiled kernels are available."""
-    if _kernels() is None:
-        return False
-    octahedron = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
-    faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
-    scene = Scene(octahedron, faces)
-    from relightcli.render.camera import default_rect, render_pixel_geometry
-
-    geometry = render_pixel_geometry(scene, default_rect(scene), (4, 4))
-    sky = np.ones((4, 8, 3), np.float32)
-    sky[1, 2] = 1e4  # a sun: the two-term plan
-    shade_environment(scene, geometry, EnvironmentLight(sky), spp=4)
-    return True
 
 
 # ---------------------------------------------------------------------------- internals
@@ -303,8 +255,6 @@ class _Run:
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
                            for light, strategy in plan.terms]
         self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
-        # Direct light with QMC samples runs compiled (kernels.shade_rows); the rest in numpy
-        self.compiled = sampler == "sobol" and bounces == 1 and _kernels() is not None
         # The mask's bounding box, grown by the pooling radius: where stopping_error filters
         rows, cols = np.divmod(pixels, geometry.mask.shape[1])
         if pixels.size:
@@ -355,38 +305,6 @@ class _Run:
         pooled = np.sqrt(np.maximum(pooled, 0.0))  # the filter's round-off can dip below 0
         return np.maximum(own, POOL_FLOOR * pooled)
 
-    def compiled_statistics(self, first_pass, passes, rows, groups, pool=None, threads=1):
-        """`pass_statistics` of passes of the pixels `rows` from the compiled kernel, its
-        pixels shared by the `threads` threads of `pool` (chunks of rows, each pixel's sums
-        in one thread: the same result for any pool); adds the rays to the scene."""
-        kernels = _kernels()
-        if not hasattr(self, "_kernel_inputs"):
-            terms = self.plan.terms
-            tables = tuple(light.sampling_tables() for light, _ in terms)
-            unoccluded = np.zeros((len(terms), self.pixel_count, 3))
-            for index, table in enumerate(self.unoccluded):
-                if table is not None:
-                    unoccluded[index] = table
-            tmax = np.float32(1e30 if self.max_distance is None else self.max_distance)
-            self._kernel_inputs = (
-                self.sobol["direct"], self.shift["direct"], self.origins, self.normals,
-                self.geometric, unoccluded, (tables + tables)[:2],
-                np.array([kernels.STRATEGY_CODES[s] for _, s in terms], np.int64), tmax)
-        handle = self.scene.native().handle
-        sums = np.zeros((rows.size, groups, 3))
-
-        def chunk(a, b):
-            return kernels.shade_rows(handle, rows[a:b], first_pass, passes, groups,
-                                      *self._kernel_inputs, sums[a:b])
-
-        if pool is None:
-            rays = chunk(0, rows.size)
-        else:
-            bounds = np.linspace(0, rows.size, KERNEL_CHUNKS * threads + 1).astype(np.int64)
-            rays = sum(pool.map(chunk, bounds[:-1], bounds[1:]))
-        self.scene.rays_traced += int(rays)
-        return sums, None
-
     def values(self, first_pass, passes, rows):
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
         u = self.uniforms("direct", first_pass, passes, rows)
@@ -409,15 +327,7 @@ class _Run:
 
 def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, workers):
     """Run passes in rounds until every pixel is done, spp is reached or time is up."""
-    if run.compiled:
-        pool = ThreadPoolExecutor(workers) if workers > 1 else None
-        try:
-            _rounds(partial(_compiled_round, run, pool, workers), run, state, spp, target_error,
-                    time_budget, min_spp, start)
-        finally:
-            if pool is not None:
-                pool.shutdown()
-    elif workers > 1:
+    if workers > 1:
         with ForkedPasses(run, workers) as pool:
             _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start)
     else:
@@ -425,22 +335,6 @@ def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, w
             return pass_statistics(run.values(first_pass, passes, rows), first_pass, groups)
 
         _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start)
-
-
-def _compiled_round(run, pool, threads, first_pass, passes, rows, groups):
-    return run.compiled_statistics(first_pass, passes, rows, groups, pool, threads)
-
-
-def _kernels():
-    """relightcli.render.kernels, or None where numba or Embree's library is missing. Waits
-    for a `preload_kernels` under way (so that nothing forks while it imports)."""
-    if _PRELOAD is not None and _PRELOAD is not threading.current_thread():
-        _PRELOAD.join()
-    try:
-        from relightcli.render import kernels
-    except (ImportError, OSError):
-        return None
-    return kernels
 
 
 def _rounds(statistics, run, state, spp, target_error, time_budget, min_spp, start):

@@ -106,7 +106,6 @@ class Scene:
         self.rays_traced = 0
         self._pool = None
         self._finalizer = None
-        self._native = None
 
     @classmethod
     def from_trimesh(cls, mesh, *, smooth_normals: bool = True, threads: int = 1,
@@ -182,15 +181,6 @@ class Scene:
                 raise ValueError(f"parallel must be 'process' or 'thread', got {self.parallel!r}")
             self._finalizer = weakref.finalize(self, self._pool.shutdown, wait=False, cancel_futures=True)
         return self._pool
-
-    def native(self):
-        """The mesh as an Embree scene that compiled kernels trace without the GIL
-        (relightcli.render.embree.NativeScene), built on first use and kept."""
-        if self._native is None:
-            from relightcli.render.embree import NativeScene
-
-            self._native = NativeScene(self.vertices, self.faces)
-        return self._native
 
     def commit(self):
         """Build the BVH now (embreex builds it lazily, on the first query)."""
