@@ -1,7 +1,20 @@
 """Error against run time of the environment-light integrator (not part of the test suite).
 
     python bench/bench_integrator.py [--res 512] [--max-spp 1024] [--workers 2] [--quick]
+                                     [--strategies mis,...] [--mitsuba]
     python bench/bench_integrator.py --headline     # the 1 s / 2% target and the scaling
+
+--mitsuba adds Mitsuba 3 (bench-only: `pip install mitsuba==3.6.4`; LLVM variant, all cores)
+on the same job in the same run: same mesh (PLY with our vertex normals), same map (texels
+repeated 4x4, see tests/render/test_mitsuba.py), its `direct` integrator (MIS) on a white
+diffuse BSDF, one ray per masked pixel centre along -Z, a sweep of spp. Each renderer's error
+is its own Monte Carlo error (the two agree to <= 1% relative RMSE, tests/render/test_mitsuba.py):
+ours against its converged reference (RQMC: the error must be measured), Mitsuba's from the
+spread of its independent launches (i.i.d. samples: RMSE^2 = mean variance of the mean,
+unbiased; a reference render as converged as ours would take Mitsuba hours). The time each
+needs to reach a given relative RMSE is interpolated (log-log) from its sweep; the ratio ours
+/ Mitsuba is printed. Both are timed warm, in-process (Mitsuba's kernels compiled by a first
+launch, ours after a first render), on the same pixels and cores.
 
 --headline renders the same framing at the resolution that gives the issue's masked-pixel
 count (30% of 512 x 512 = 78.6k pixels: 592 x 592 here, where the body covers 22.4%).
@@ -21,6 +34,8 @@ from __future__ import annotations
 
 import argparse
 import csv
+import glob
+import os
 import sys
 import time
 from dataclasses import replace
@@ -45,6 +60,10 @@ HDRS = {"hard_sun": "noon_grass_1k.hdr", "overcast": "kloofendal_overcast_1k.hdr
 # "mis-nocv" the same without the control variate
 STRATEGIES = ("uniform", "cosine", "env", "mis-nocv", "mis")
 TARGETS = (0.08, 0.04, 0.02)
+# Relative RMSEs at which the time to reach them is compared with Mitsuba
+EQUAL_ERRORS = (0.08, 0.04, 0.02, 0.01)
+# Mitsuba: samples per pixel per launch (bounds its wavefront's memory)
+MITSUBA_BATCH = 16
 REF_PIXELS = 2048
 REF_SPP = 4096
 RESULTS = ROOT / "bench" / "results"
@@ -108,6 +127,9 @@ def run(args):
     geometry = render_pixel_geometry(scene, default_rect(scene), (args.res, args.res))
     coverage = float(geometry.mask.mean())
     print(f"body: {triangles} triangles, {args.res}x{args.res}, mask covers {coverage:.1%}")
+    mi = mitsuba_module() if args.mitsuba else None
+    if args.mitsuba and mi is None:
+        print("mitsuba (llvm_ad_rgb) unavailable: `pip install mitsuba==3.6.4` and a libLLVM")
     rows = []
     spps = [s for s in (4, 16, 64, 256, 1024) if s <= args.max_spp]
     for hdr_name, hdr_file in HDRS.items():
@@ -120,7 +142,7 @@ def run(args):
         print(f"{hdr_name}: reference {REF_SPP} spp on {REF_PIXELS} pixels in "
               f"{time.perf_counter() - start:.1f} s, median rel. stderr "
               f"{reference.median_relative_error():.4f}")
-        jobs = [(s, "spp", spp, None) for s in STRATEGIES for spp in spps]
+        jobs = [(s, "spp", spp, None) for s in args.strategies for spp in spps]
         jobs += [("mis", "target", args.max_spp * 4, t) for t in TARGETS]
         for strategy, mode, spp, target in jobs:
             result = shade_environment(scene, geometry, light, spp=spp, target_error=target,
@@ -136,9 +158,12 @@ def run(args):
                        median_rel_error_reported=round(reported, 5), workers=args.workers,
                        coverage=round(coverage, 4))
             rows.append(row)
-            print(f"{hdr_name:9s} {strategy:8s} {result.strategy:8s} {mode:6s} spp {row['spp']:7.1f} "
-                  f"target {str(target or '-'):5s} {row['seconds']:8.2f} s  {row['mrays_per_s']:6.2f} Mrays/s  "
-                  f"relRMSE {rel_rmse:.4f}  median rel err {true_rel:.4f} (reported {reported:.4f})")
+            print_row(row)
+        if mi is not None:
+            rows += mitsuba_rows(mi, scene, geometry, load_hdr(hdr_file), hdr_name,
+                                 [s for s in (4, 16, 64, 256, 1024, 4096) if s <= args.mitsuba_max_spp],
+                                 coverage)
+            print_equal_error_ratios(rows, hdr_name)
     write_csv(rows)
     plot(rows)
     rates = raw_embree_rate(scene, geometry)
@@ -147,34 +172,154 @@ def run(args):
     scaling(scene, geometry, args)
 
 
-def scaling(scene, geometry, args):
-    """Integrator wall time on 1 and 2 worker processes, same render; and, because a shared
-    machine makes wall-clock scaling meaningless, the scaling two idle cores would give from
-    measured CPU times: the calling process samples one share and merges, the forked worker
-    samples the other, so the busier of the two sets the time."""
+def print_row(row):
+    print(f"{row['hdr']:9s} {row['strategy']:8s} {row['plan']:8s} {row['mode']:6s} spp {row['spp']:7.1f} "
+          f"target {str(row['target'] or '-'):5s} {row['seconds']:8.2f} s  {row['mrays_per_s']:6.2f} Mrays/s  "
+          f"relRMSE {row['rel_rmse']:.4f}  median rel err {row['median_rel_error']:.4f} "
+          f"(reported {row['median_rel_error_reported']:.4f})")
+
+
+# ---------------------------------------------------------------------------- Mitsuba 3
+def mitsuba_module():
+    """mitsuba with its LLVM variant, or None (a bench-only tool, never a runtime dependency)."""
+    if "DRJIT_LIBLLVM_PATH" not in os.environ:
+        found = sorted(glob.glob("/usr/lib/x86_64-linux-gnu/libLLVM*.so*"), reverse=True)
+        if found:
+            os.environ["DRJIT_LIBLLVM_PATH"] = found[0]
+    try:
+        import mitsuba
+    except ImportError:
+        return None
+    try:
+        mitsuba.set_variant("llvm_ad_rgb")
+    except (ImportError, AttributeError, RuntimeError):
+        return None
+    return mitsuba
+
+
+class MitsubaJob:
+    """Mitsuba's `direct` integrator on our mesh and map, one ray per pixel centre along -Z
+    (the setup of tests/render/test_mitsuba.py), rendering the masked pixels of `geometry`."""
+
+    def __init__(self, mi, scene, geometry, env):
+        import tempfile
+
+        import trimesh
+        from test_mitsuba import to_mitsuba_bitmap
+
+        from relightcli.render.camera import pixel_centres
+
+        mesh = trimesh.Trimesh(scene.to_world(scene.vertices), scene.faces,
+                               vertex_normals=scene.vertex_normals, process=False)
+        with tempfile.TemporaryDirectory() as folder:
+            path = os.path.join(folder, "mesh.ply")
+            mesh.export(path, vertex_normal=True)
+            self.scene = mi.load_dict({
+                "type": "scene", "integrator": {"type": "direct"},
+                "env": {"type": "envmap", "bitmap": mi.Bitmap(to_mitsuba_bitmap(env, 4))},
+                "mesh": {"type": "ply", "filename": path, "bsdf": {
+                    "type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}},
+            })
+        height, width = geometry.mask.shape
+        self.xy = pixel_centres(geometry.rect, (width, height))[geometry.mask]
+        self.top = float(mesh.bounds[1, 2] + 0.01 * np.linalg.norm(mesh.extents))
+        self.mi = mi
+
+    def render(self, spp, seed=0):
+        """(mean (N, 3) float64 over spp samples per pixel, variance of the channel mean's
+        mean (N,) from the spread of the launches (at least 4), seconds)."""
+        mi, n = self.mi, self.xy.shape[0]
+        batch = max(1, min(MITSUBA_BATCH, spp // 4))
+        launches = spp // batch
+        tiled = np.tile(self.xy, (batch, 1))
+        origins = np.column_stack([tiled, np.full(tiled.shape[0], self.top)])
+        start = time.perf_counter()
+        ray = mi.Ray3f(mi.Point3f(*origins.T), mi.Vector3f(*np.tile([0.0, 0.0, -1.0], (origins.shape[0], 1)).T))
+        sampler = mi.load_dict({"type": "independent"})
+        means = np.zeros((launches, n, 3))
+        for launch in range(launches):
+            sampler.seed(seed * 100_003 + launch, origins.shape[0])
+            spectrum, _, _ = self.scene.integrator().sample(self.scene, sampler, ray)
+            means[launch] = np.array(spectrum).T.reshape(batch, n, 3).mean(axis=0)
+        seconds = time.perf_counter() - start
+        variance = means.mean(axis=2).var(axis=0, ddof=1) / launches
+        return means.mean(axis=0), variance, seconds
+
+
+def mitsuba_rows(mi, scene, geometry, env, hdr_name, spps, coverage):
+    """Mitsuba's error against run time on the same job: rows like ours (strategy "mitsuba"),
+    its relative RMSE from its own variance (see the module docstring)."""
+    job = MitsubaJob(mi, scene, geometry, env)
+    job.render(MITSUBA_BATCH, seed=99)  # compiles its kernels
+    rows = []
+    for spp in spps:
+        mean, variance, seconds = job.render(spp, seed=1)
+        rel_rmse = float(np.sqrt(np.mean(variance)) / np.mean(mean))
+        row = dict(hdr=hdr_name, strategy="mitsuba", plan="direct", mode="spp", spp=float(spp),
+                   target="", seconds=round(seconds, 3), rays="", mrays_per_s="",
+                   rel_rmse=round(rel_rmse, 5), median_rel_error="",
+                   median_rel_error_reported="", workers="all", coverage=round(coverage, 4))
+        rows.append(row)
+        print(f"{hdr_name:9s} mitsuba  direct   spp    spp {spp:7.1f}               {seconds:8.2f} s"
+              f"                   relRMSE {rel_rmse:.4f} (from its variance)")
+    return rows
+
+
+def time_at_error(points, error):
+    """Seconds at which a sweep [(seconds, rel_rmse), ...] reaches `error`, interpolated
+    log-log between the two runs that bracket it; None outside the sweep."""
+    points = sorted(points)
+    for (t0, e0), (t1, e1) in zip(points, points[1:]):
+        if e0 >= error >= e1 and e0 > e1:
+            f = np.log(e0 / error) / np.log(e0 / e1)
+            return float(np.exp(np.log(t0) + f * np.log(t1 / t0)))
+    return None
+
+
+def print_equal_error_ratios(rows, hdr_name):
+    """Time to equal error, ours (the planned default "mis") over Mitsuba, same run."""
+    def sweep(strategy):
+        return [(r["seconds"], r["rel_rmse"]) for r in rows
+                if r["hdr"] == hdr_name and r["strategy"] == strategy and r["mode"] == "spp"]
+
+    for error in EQUAL_ERRORS:
+        ours, theirs = time_at_error(sweep("mis"), error), time_at_error(sweep("mitsuba"), error)
+        if ours is None or theirs is None:
+            print(f"{hdr_name}: relative RMSE {error}: outside a sweep (ours {ours}, Mitsuba {theirs})")
+            continue
+        print(f"{hdr_name}: relative RMSE {error}: ours {ours:.3f} s, Mitsuba {theirs:.3f} s, "
+              f"ratio {ours / theirs:.2f}")
+
+
+def scaling(scene, geometry, args, repeats=3):
+    """Integrator wall time on 1 and 2 worker processes, same render, median of `repeats`;
+    and, because a shared machine makes wall-clock scaling meaningless, the scaling two idle
+    cores would give from measured CPU times: the calling process samples one share and
+    merges, the forked worker samples the other, so the busier of the two sets the time."""
     import resource
 
     light = EnvironmentLight(load_hdr(HDRS["hard_sun"]))
     light.sun_and_sky()
-    times = {}
+    walls, ideals = {}, {}
     for workers in (1, 2):
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        parent = time.process_time()
-        result = shade_environment(scene, geometry, light, spp=64, seed=1, workers=workers)
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        parent = time.process_time() - parent
-        children = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-        times[workers] = result.seconds
-        print(f"integrator, {workers} worker(s): {result.seconds:.2f} s wall, "
-              f"{result.rays / result.seconds / 1e6:.2f} Mrays/s, CPU: calling process "
-              f"{parent:.2f} s, workers {children:.2f} s")
-        if workers == 1:
-            single_cpu = parent
-        else:  # the calling process samples a share too: the slower process sets the time
-            ideal = max(parent, children / (workers - 1))
-            print(f"  on 2 idle cores (from CPU times, the busier process): {ideal:.2f} s, "
-                  f"{single_cpu / ideal:.2f}x")
-    print(f"integrator scaling 1 -> 2 workers, wall clock: {times[1] / times[2]:.2f}x")
+        runs = []
+        for _ in range(repeats):
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            parent = time.process_time()
+            result = shade_environment(scene, geometry, light, spp=64, seed=1, workers=workers)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            parent = time.process_time() - parent
+            children = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+            # the calling process samples a share too: the slower process sets the time
+            ideal = parent if workers == 1 else max(parent, children / (workers - 1))
+            runs.append((result.seconds, ideal, parent, children, result.rays / result.seconds / 1e6))
+        wall, ideal, parent, children, rate = (float(np.median(c)) for c in zip(*runs))
+        walls[workers], ideals[workers] = wall, ideal
+        print(f"integrator, {workers} worker(s): {wall:.2f} s wall (median of {repeats}), "
+              f"{rate:.2f} Mrays/s, CPU: calling process {parent:.2f} s, workers {children:.2f} s, "
+              f"on idle cores (from CPU times) {ideal:.2f} s")
+    print(f"integrator scaling 1 -> 2 workers: wall clock {walls[1] / walls[2]:.2f}x, "
+          f"on idle cores (from CPU times) {ideals[1] / ideals[2]:.2f}x")
 
 
 def headline(args):
@@ -223,11 +368,12 @@ def plot(rows):
 
     fig, axes = plt.subplots(1, len(HDRS), figsize=(11, 4.5), sharey=True)
     for ax, hdr in zip(axes, HDRS):
-        for strategy in STRATEGIES:
+        for strategy in STRATEGIES + ("mitsuba",):
             pts = [(r["seconds"], r["rel_rmse"]) for r in rows
                    if r["hdr"] == hdr and r["strategy"] == strategy and r["mode"] == "spp"]
             if pts:
-                ax.loglog(*zip(*pts), "o-", label=strategy)
+                ax.loglog(*zip(*pts), "s--" if strategy == "mitsuba" else "o-",
+                          label="Mitsuba 3 (direct)" if strategy == "mitsuba" else strategy)
         pts = [(r["seconds"], r["rel_rmse"]) for r in rows if r["hdr"] == hdr and r["mode"] == "target"]
         if pts:
             ax.loglog(*zip(*pts), "k*", markersize=10, label="mis, target error")
@@ -248,11 +394,17 @@ def main():
     parser.add_argument("--max-spp", type=int, default=1024)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--quick", action="store_true", help="128x128, up to 64 spp")
+    parser.add_argument("--strategies", default=",".join(STRATEGIES),
+                        help="comma-separated subset of " + ", ".join(STRATEGIES))
+    parser.add_argument("--mitsuba", action="store_true",
+                        help="add Mitsuba 3 on the same job and print time-to-equal-error ratios")
+    parser.add_argument("--mitsuba-max-spp", type=int, default=1024)
     parser.add_argument("--coverage", type=float, default=0.30,
                         help="--headline: as many masked pixels as this share of --res x --res")
     parser.add_argument("--headline", action="store_true",
                         help="only the 1 s / 2%% target on the hard sun, and the scaling")
     args = parser.parse_args()
+    args.strategies = tuple(args.strategies.split(","))
     if args.quick:
         args.res, args.max_spp = 128, 64
     if args.headline:
