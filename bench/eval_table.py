@@ -20,11 +20,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-RUNS = [  # (method, true mask, albedo source)
-    ("raytrace", False, "ratio"), ("raytrace-norefine", False, "ratio"), ("sh9", False, "ratio"),
-    ("sh25", False, "ratio"), ("raytrace", False, "net"),
-    ("raytrace", True, "ratio"), ("raytrace-norefine", True, "ratio"), ("sh9", True, "ratio"),
-    ("raytrace", True, "net"),
+RUNS = [  # (method, true mask, albedo source; None: the default)
+    ("raytrace", False, None), ("raytrace-norefine", False, None), ("sh9", False, None),
+    ("sh25", False, None), ("raytrace", False, "solve"), ("raytrace", False, "net"),
+    ("raytrace", True, None), ("raytrace-norefine", True, None), ("sh9", True, None),
+    ("raytrace", True, "solve"), ("raytrace", True, "net"),
 ]
 
 
@@ -32,8 +32,8 @@ def cell(layer: dict) -> str:
     return f"{layer['mse']:.2f} / {layer['ssim']:.4f} / {layer['psnr']:.2f}"
 
 
-def run_name(method: str, true_mask: bool, albedo: str) -> str:
-    return f"{method}{'_gtmask' if true_mask else ''}{'_netalbedo' if albedo == 'net' else ''}"
+def run_name(method: str, true_mask: bool, albedo: str | None) -> str:
+    return f"{method}{'_gtmask' if true_mask else ''}{f'_{albedo}albedo' if albedo else ''}"
 
 
 def main() -> int:
@@ -50,8 +50,8 @@ def main() -> int:
     for method, true_mask, albedo in RUNS:
         if method not in wanted:
             continue
-        command = [sys.executable, "-m", "relightcli", "eval", args.dataset, "--method", method,
-                   "--albedo", albedo, "--json"]
+        command = [sys.executable, "-m", "relightcli", "eval", args.dataset, "--method", method, "--json"]
+        command += ["--albedo", albedo] if albedo else []
         command += ["--use-gt-mask"] if true_mask else []
         command += ["--resolution", str(args.resolution)] if args.resolution else []
         result = subprocess.run(command, check=True, capture_output=True, text=True).stdout
@@ -64,7 +64,7 @@ def main() -> int:
         if path.is_file():
             result = json.loads(path.read_text())
             label = (f"ours `{method}`" + (", true mask" if true_mask else "")
-                     + (", net albedo (`--albedo net`)" if albedo == "net" else ""))
+                     + (f", {albedo} albedo (`--albedo {albedo}`)" if albedo else ""))
             rows.append(f"| {label} | {cell(result['relit'])} | {cell(result['albedo'])} | "
                         f"{cell(result['shading'])} | {result['seconds_per_image']:.1f} |")
     (out / "table.md").write_text("\n".join(rows) + "\n")

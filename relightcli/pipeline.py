@@ -67,7 +67,7 @@ def output_needs(output: str, method: str) -> tuple[str, ...]:
 class RelightOptions:
     outputs: tuple[str, ...] = ("relit",)
     method: str = "raytrace"
-    albedo: str | None = None  # layers.ALBEDO_SOURCES; None: the method's (default_albedo)
+    albedo: str = "ratio"  # layers.ALBEDO_SOURCES
     mask_path: Path | None = None
     rotate_deg: float = 0.0
     exposure_ev: float = 0.0
@@ -79,17 +79,6 @@ class RelightOptions:
     max_pixels: int = 100_000_000
     resolution: int = DEFAULT_RESOLUTION
     turntable: int = 0  # frames with the environment turned 360/N apart; 0: one image
-
-
-    def __post_init__(self):
-        if self.albedo is None:
-            self.albedo = default_albedo(self.method)
-
-
-def default_albedo(method: str) -> str:
-    """The ray-tracing methods solve the input light on their mesh; the SH baselines, which
-    build no mesh, divide by the SH-9 shading of the net's light."""
-    return "ratio" if method in ("sh9", "sh25") else "solve"
 
 
 @dataclass

@@ -296,21 +296,24 @@ def stage_ao(frame: Frame, options, models: Models) -> None:
 
 def stage_delight(frame: Frame, options, models: Models) -> None:
     """De-lighting: the input lighting (16x32) and an albedo. The net gives a light and an
-    albedo from [crop, normals]. `--albedo solve` (the default) solves the light again by
-    inverse rendering on the mesh (solve_input_light) and divides the crop by the ray-traced
-    shading of that light (cast shadows and occlusion leave the albedo with it); `--albedo
-    ratio` divides by the SH-9 irradiance of the net's light at the predicted normals; both
-    blend into the net's albedo where that shading is too dark to divide by
+    albedo from [crop, normals]. `--albedo ratio` (the default) divides the crop by the SH-9
+    irradiance of the net's light at the predicted normals; `--albedo solve` solves the light
+    again by inverse rendering on the mesh (solve_input_light) and divides the crop by the
+    ray-traced shading of that light (cast shadows and occlusion leave the albedo with it);
+    both blend into the net's albedo where that shading is too dark to divide by
     (compose.ratio_albedo), take the net's albedo level per channel and its albedo on the
     outline (compose.anchor_albedo). `--albedo net` keeps the net's (the paper's).
 
-    Measured on the 20 validation scenes at 512 (true mask, no refinement; albedo / relit
-    PSNR): ratio 16.15 / 16.57, solve 16.87 / 17.07; with an oracle per-channel albedo gain
-    (shape alone) 18.90 / 18.43 against 20.01 / 19.24. Without the anchoring the solve's own
-    level scores 16.59 / 17.06. Dividing by the traced shading of the *true* light scores
-    19.67 / 19.95: the light's shape and level, not the division, is what is left. The input
+    Measured at 512 (`--method raytrace-norefine` on the 20 validation scenes, true mask;
+    albedo / relit PSNR): ratio 16.15 / 16.57, solve 16.87 / 17.07; with an oracle per-channel
+    albedo gain (shape alone) 18.90 / 18.43 against 20.01 / 19.24; without the anchoring the
+    solve's own level scores 16.59 / 17.06; dividing by the traced shading of the *true* light
+    19.67 / 19.95: the light's shape and level, not the division, is what is left. On the 20
+    test scenes (`--method raytrace`) the solve gains less: true mask 18.70 / 18.05 -> 18.80 /
+    18.21, own mask 18.45 / 17.85 -> 18.48 / 17.85, with a lower SSIM (albedo 0.756 -> 0.741, the
+    traced shading's noise), for ~1.2 s more per photo at 512: not the default. The input
     shading is traced with the target's effort: capped at 8 samples per pixel it lost 0.04 /
-    0.09 dB for ~25% less time per image."""
+    0.09 dB on validation for ~25% less time per image."""
     from relightcli.render.environment import EnvironmentLight
     from relightcli.render.sh import project_sh, sh_irradiance_shading
 

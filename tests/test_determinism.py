@@ -51,6 +51,13 @@ def test_an_item_gives_the_same_bytes_on_one_thread_and_two(batch, tmp_path, cap
     assert relight(capsys, batch / "b_skier.jpg", tmp_path / "t1" / "b_skier.png", "--threads", "1") == two
 
 
+def test_the_light_solve_gives_the_same_bytes_on_one_thread_and_two(batch, tmp_path, capsys):
+    two = relight(capsys, batch / "b_skier.jpg", tmp_path / "t2" / "b_skier.png", "--threads", "2", "--albedo", "solve")
+    assert relight(capsys, batch / "b_skier.jpg", tmp_path / "t1" / "b_skier.png", "--threads", "1",
+                   "--albedo", "solve") == two
+    assert two != relight(capsys, batch / "b_skier.jpg", tmp_path / "ratio" / "b_skier.png", "--threads", "1")
+
+
 def test_an_item_gives_the_same_bytes_on_ray_as_alone(batch, tmp_path, capsys):
     pytest.importorskip("ray.data")
     alone = relight(capsys, batch / "b_skier.jpg", tmp_path / "alone" / "b_skier.png", "--threads", "1")

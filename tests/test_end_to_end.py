@@ -46,7 +46,7 @@ def test_every_layer_of_the_example(random_models, tmp_path, capsys, monkeypatch
     layers = "relit,albedo,normal,ao,shading,mask,mesh,light,preview"
     code = main([str(EXAMPLES / "skier.jpg"), "--mask", str(EXAMPLES / "skier_mask.png"),
                  "--hdr", str(EXAMPLES / "noon_grass.hdr"), "-o", str(out), "--outputs", layers,
-                 "--resolution", "64", "--spp", "4", "--threads", "1", "--json"])
+                 "--resolution", "64", "--spp", "4", "--threads", "1", "--albedo", "solve", "--json"])
     report = json.loads(capsys.readouterr().out)
     assert code == 0, report
     item = report["items"][0]

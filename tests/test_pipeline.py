@@ -17,7 +17,7 @@ from relightcli.pipeline import RelightOptions, plan_stages, run_stages
 from relightcli.stages import Models
 
 
-def plan(outputs, method="raytrace", has_alpha=True, albedo=None):
+def plan(outputs, method="raytrace", has_alpha=True, albedo="ratio"):
     return plan_stages(RelightOptions(outputs=tuple(outputs), method=method, albedo=albedo), has_alpha=has_alpha)
 
 
@@ -39,6 +39,7 @@ def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
     p = plan(["relit"])
     assert p.run == ["people", "mask", "crop", "geometry", "ao", "reconstruct", "body", "body_maps", "delight", "face",
                      "raytrace", "refine", "face_refine", "compose"]
+    assert plan(["relit"], albedo="solve").run == p.run  # the same stages: the solve needs none more
     assert "sh_shading" in p.skipped
 
 
@@ -90,9 +91,7 @@ def test_normals_alone_need_only_the_geometry_net():
 def test_the_light_solve_plans_the_mesh_and_the_bodies_before_the_delighting():
     p = plan(["albedo"], method="sh9", has_alpha=True, albedo="solve")
     assert p.run.index("reconstruct") < p.run.index("delight") and p.run.index("body") < p.run.index("delight")
-    assert "reconstruct" not in plan(["albedo"], albedo="ratio").run
-    assert "reconstruct" not in plan(["albedo"], method="sh9").run  # the baselines' default: ratio
-    assert "reconstruct" in plan(["albedo"]).run
+    assert "reconstruct" not in plan(["albedo"]).run  # the default, ratio, needs no mesh
     assert "raytrace" not in p.run  # the target's shading is not needed for the albedo
 
 
