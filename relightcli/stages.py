@@ -313,9 +313,9 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     albedo gain (shape alone) 18.90 / 18.43 against 20.01 / 19.24; without the anchoring the
     solve's own level scores 16.59 / 17.06; dividing by the traced shading of the *true* light
     19.67 / 19.95: the light's shape and level, not the division, is what is left. On the 20
-    test scenes (`--method raytrace`) the solve gains less: true mask 18.70 / 18.05 -> 18.80 /
-    18.21, own mask 18.45 / 17.85 -> 18.48 / 17.85, with a lower SSIM (albedo 0.756 -> 0.741, the
-    traced shading's noise), for ~1.2 s more per photo at 512: not the default. The input
+    test scenes (`--method raytrace`, one light colour: render.inverse.solve_light) the solve
+    gains less: true mask 18.70 / 18.05 -> 18.92 / 18.31, own mask 18.45 / 17.85 -> 18.61 /
+    17.98, for ~1.0 s more per photo at 512 (over the 2 s target): not the default. The input
     shading is traced with the target's effort: capped at 8 samples per pixel it lost 0.04 /
     0.09 dB on validation for ~25% less time per image."""
     from relightcli.render.environment import EnvironmentLight
