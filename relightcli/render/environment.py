@@ -91,17 +91,7 @@ class EnvironmentLight:
         if self._irradiance is None:
             self._irradiance = _irradiance_table(self.radiance, IRRADIANCE_NODES,
                                                  IRRADIANCE_TEXEL_ROWS)
-        u, v = direction_to_uv(np.asarray(normals, dtype=np.float64))
-        table = self._irradiance
-        rows, width = table.shape[0] - 1, table.shape[1]
-        x, y = u * width, np.clip(v * rows, 0.0, rows)
-        col0, row0 = np.floor(x), np.minimum(np.floor(y), rows - 1)
-        fx, fy = (x - col0)[:, None], (y - row0)[:, None]
-        col0 = col0.astype(np.int64) % width
-        col1, row0 = (col0 + 1) % width, row0.astype(np.int64)
-        top = (1 - fx) * table[row0, col0] + fx * table[row0, col1]
-        bottom = (1 - fx) * table[row0 + 1, col0] + fx * table[row0 + 1, col1]
-        return (1 - fy) * top + fy * bottom
+        return lookup_normal_table(self._irradiance, normals)
 
     def sun_and_sky(self):
         """`split_sun()`, computed once per light (renders of a turntable reuse it)."""
@@ -184,6 +174,23 @@ class EnvironmentLight:
     def _col(self, u):
         width = self.radiance.shape[1]
         return np.clip((np.asarray(u) * width).astype(np.int64), 0, width - 1)
+
+
+def lookup_normal_table(table: np.ndarray, normals) -> np.ndarray:
+    """Bilinear lookup of a (rows + 1, width, ...) table over unit normals on the node grid
+    u = j / width, v = i / rows (rows 0 and `rows` are the poles), at normals (N, 3):
+    (N, ...), wrapping in u."""
+    u, v = direction_to_uv(np.asarray(normals, dtype=np.float64))
+    rows, width = table.shape[0] - 1, table.shape[1]
+    x, y = u * width, np.clip(v * rows, 0.0, rows)
+    col0, row0 = np.floor(x), np.minimum(np.floor(y), rows - 1)
+    extra = (1,) * (table.ndim - 2)
+    fx, fy = (x - col0).reshape(-1, *extra), (y - row0).reshape(-1, *extra)
+    col0 = col0.astype(np.int64) % width
+    col1, row0 = (col0 + 1) % width, row0.astype(np.int64)
+    top = (1 - fx) * table[row0, col0] + fx * table[row0, col1]
+    bottom = (1 - fx) * table[row0 + 1, col0] + fx * table[row0 + 1, col1]
+    return (1 - fy) * top + fy * bottom
 
 
 def _irradiance_table(radiance, nodes, texel_rows):

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relightcli.io.envmap import direction_to_uv, texel_directions, texel_solid_angles, uv_to_direction
+from relightcli.render.environment import lookup_normal_table
 from relightcli.render.estimators import cosine_directions, ray_origins, visible
 
 LIGHT_HEIGHT = 16
@@ -88,27 +89,17 @@ def unoccluded_transport(normals: np.ndarray, height: int = LIGHT_HEIGHT) -> np.
     (transport_table); each row sums to ~1. For 4000 normals the direct sum
     (exact_unoccluded_transport) takes 0.16 s, this 0.01 s; its rows differ by at most 0.5%
     (L1) and a random light's shading by 0.1% (tests/render/test_inverse.py)."""
-    table = transport_table(height)
-    rows, width = table.shape[0] - 1, table.shape[1]
-    u, v = direction_to_uv(np.asarray(normals, np.float64))
-    x, y = u * width - 0.5, np.clip(v * rows, 0.0, rows)
-    col0, row0 = np.floor(x), np.minimum(np.floor(y), rows - 1)
-    fx, fy = (x - col0)[:, None].astype(np.float32), (y - row0)[:, None].astype(np.float32)
-    col0 = col0.astype(np.int64) % width
-    col1, row0 = (col0 + 1) % width, row0.astype(np.int64)
-    top = (1 - fx) * table[row0, col0] + fx * table[row0, col1]
-    bottom = (1 - fx) * table[row0 + 1, col0] + fx * table[row0 + 1, col1]
-    return (1 - fy) * top + fy * bottom
+    return lookup_normal_table(transport_table(height), normals).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=2)
 def transport_table(height: int) -> np.ndarray:
     """(NORMAL_ROWS + 1, 2 NORMAL_ROWS, H*W) float32: the unoccluded transport of the normals at
-    the grid's nodes: rows at polar angles 0, pi/NORMAL_ROWS, ..., pi (the poles included),
-    columns at the centres of 2 NORMAL_ROWS azimuth cells (the DESIGN.md map convention)."""
+    the nodes of `lookup_normal_table`: rows at polar angles 0, pi/NORMAL_ROWS, ..., pi (the
+    poles included), columns at u = j / (2 NORMAL_ROWS) (the DESIGN.md map convention)."""
     width = 2 * height
     columns = 2 * NORMAL_ROWS
-    u = (np.arange(columns) + 0.5) / columns
+    u = np.arange(columns) / columns
     v = np.arange(NORMAL_ROWS + 1) / NORMAL_ROWS
     uu, vv = np.meshgrid(u, v)
     nodes = uv_to_direction(uu.ravel(), vv.ravel())
