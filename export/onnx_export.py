@@ -70,8 +70,12 @@ def person_like_inputs(contract: IOContract, height: int, width: int, seed: int 
     ao = np.clip(1 - 0.6 * (1 - nz) * mask, 0, 1)[None]
     shading = (0.2 + 3.0 * np.clip(normal[0] * 0.7 + normal[2] * 0.7, 0, None)) * ao[0]
     shading = np.stack([shading, 0.9 * shading, 0.8 * shading])
+    # a fitted body's prior (relightcli.nets.geometry.prior_channels): the ellipsoid's normals,
+    # its back mirrored in z, depths of a 0.3-thick slab, coverage
+    back = normal * np.array([1, 1, -1], np.float32)[:, None, None]
+    prior = np.concatenate([normal, back, 0.15 * nz[None] * mask, -0.15 * nz[None] * mask, mask[None]])
     library = {
-        "image": image, "normal": normal, "ao": ao, "coarse_shading": shading,
+        "image": image, "normal": normal, "ao": ao, "coarse_shading": shading, "prior": prior,
         "body_shading": shading, "face_shading": shading * (1 + 0.1 * np.cos(9 * x)),
     }
     feeds = {}

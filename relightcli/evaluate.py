@@ -6,7 +6,9 @@ optionally `gt_normal.exr`; EXRs are linear. Metrics over the ground-truth foreg
 (reported x1e3), SSIM (Gaussian window 11, sigma 1.5, per channel, averaged over the mask) and
 PSNR, on sRGB-encoded values clipped to [0, 1]. Shading is first divided, prediction and ground
 truth alike, by one per-scene constant: the 95th percentile of the ground-truth shading over the
-mask (RGB pooled) divided by 0.8, so that bright shading is not hidden by the clip.
+mask (RGB pooled) divided by 0.8, so that bright shading is not hidden by the clip. With
+`gt_normal.exr`, also the mean angle between the predicted (the geometry stage's, camera frame)
+and the true normals over the mask.
 """
 
 from __future__ import annotations
@@ -110,7 +112,21 @@ def scene_metrics(scene: Scene, pred: dict[str, np.ndarray]) -> dict:
         if layer == "shading":
             p, g = p / scale, g / scale
         out[layer] = layer_metrics(p, g, scene.mask)
+    if scene.normal is not None and pred.get("normal") is not None:
+        out["normal"] = normal_metrics(pred["normal"], scene.normal, scene.mask)
     return out
+
+
+def normal_metrics(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
+    """Mean angle in degrees between predicted and true (H, W, 3) normals over the true mask's
+    pixels (> 0.5) that both give a normal; `covered`: their share of the mask."""
+    inside = (mask > 0.5) & (np.linalg.norm(pred, axis=-1) > 1e-6) & (np.linalg.norm(truth, axis=-1) > 1e-6)
+    share = float(inside.sum() / max(int((mask > 0.5).sum()), 1))
+    if not inside.any():
+        return {"deg": None, "covered": share}
+    p, t = pred[inside], truth[inside]
+    cosine = np.sum(p * t, -1) / (np.linalg.norm(p, axis=-1) * np.linalg.norm(t, axis=-1))
+    return {"deg": float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))).mean()), "covered": share}
 
 
 def evaluate(scene_folders: list[Path], predict: Callable[[Scene], dict], method: str,
@@ -136,6 +152,9 @@ def evaluate(scene_folders: list[Path], predict: Callable[[Scene], dict], method
               "seconds_per_image": float(np.mean([e["seconds"] for e in ok])) if ok else None}
     for layer in LAYERS:
         result[layer] = {k: float(np.mean([e[layer][k] for e in ok])) if ok else None for k in ("mse", "ssim", "psnr")}
+    angles = [e["normal"]["deg"] for e in ok if e.get("normal", {}).get("deg") is not None]
+    if angles:
+        result["normal"] = {"deg": float(np.mean(angles)), "scenes": len(angles)}
     result["per_scene"] = per_scene
     return result
 
@@ -154,4 +173,7 @@ def format_table(result: dict) -> str:
     name = result["method"] + (", net albedo" if result.get("albedo_source") == "net" else "")
     lines.append(f"{'ours: ' + name:<24} | " + " | ".join(f"{c:^24}" for c in ours))
     lines.append(f"{result['scenes']} scenes, {result['failed']} failed")
+    if "normal" in result:
+        lines.append(f"normals: {result['normal']['deg']:.2f} deg mean angular error "
+                     f"({result['normal']['scenes']} scenes with true normals)")
     return "\n".join(lines)

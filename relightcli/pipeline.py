@@ -26,11 +26,11 @@ STAGE_NEEDS = {
     "people": (),  # person detection, pose and segmentation of everyone in the photo
     "mask": ("people",),  # from the input's alpha, --mask, or the people's segmentations
     "crop": ("mask",),  # square around the person at the working resolution
-    "geometry": ("crop",),  # front/back normals and depth
-    "ao": ("crop",),  # ambient occlusion net
-    "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
     "body": ("people", "crop"),  # body model fitted to each person's pose and silhouette
     "body_maps": ("body",),  # the fitted bodies' front/back depth and normals in the crop
+    "geometry": ("crop",),  # front/back normals and depth (with the prior net: also body_maps)
+    "ao": ("crop",),  # ambient occlusion net
+    "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
     "delight": ("geometry",),  # albedo + input light (--albedo solve: also the meshes, see stage_needs)
     "face": ("people", "geometry"),  # face detector + mesh on the people's heads, morphable-model fit
     "raytrace": ("reconstruct", "body_maps"),  # coarse body shading under the target environment
@@ -92,9 +92,12 @@ class Plan:
 
 def stage_needs(stage: str, options: RelightOptions) -> tuple[str, ...]:
     """The stages `stage` needs under these options: the de-lighting's light solve
-    (--albedo solve) ray-traces the mesh and the fitted bodies as the shading does."""
+    (--albedo solve) ray-traces the mesh and the fitted bodies as the shading does; the geometry
+    refines the fitted bodies' maps when the prior net ships."""
     if stage == "delight" and options.albedo == "solve":
         return STAGE_NEEDS["delight"] + ("reconstruct", "body_maps")
+    if stage == "geometry" and _ships("geometry_prior"):
+        return STAGE_NEEDS["geometry"] + ("body_maps",)
     return STAGE_NEEDS[stage]
 
 
@@ -113,7 +116,7 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
         skipped["raytrace"] = f"--method {options.method} shades with spherical harmonics"
     if options.method == "raytrace-norefine":
         skipped["refine"] = "--method raytrace-norefine"
-    if "face_refine" in run and not _face_refinement_ships():
+    if "face_refine" in run and not _ships("face_refine"):
         for stage in ("face", "face_refine"):
             run.remove(stage)
             skipped[stage] = ("models/manifest.json has no face_refine model: the body "
@@ -125,13 +128,14 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
     return Plan(run, skipped)
 
 
-def _face_refinement_ships() -> bool:
-    """Whether the models folder describes a face refinement net (the face stage's consumer)."""
+def _ships(model: str) -> bool:
+    """Whether the models folder describes `model` (the face refinement: the face stage's
+    consumer; the geometry prior net: the body maps')."""
     from relightcli.errors import RelightError
     from relightcli.nets.manifest import load_manifest
 
     try:
-        return "face_refine" in load_manifest()
+        return model in load_manifest()
     except RelightError:
         return False  # a broken manifest is reported when the models load
 
@@ -230,7 +234,8 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
 
 
 def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, models=None) -> dict:
-    """For `relight eval`: relit, albedo and shading (full frame, linear) of a scene folder."""
+    """For `relight eval`: relit, albedo, shading (full frame, linear) and the geometry stage's
+    normals (full frame, zero off the person) of a scene folder."""
     from relightcli.compose import paste_back
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
@@ -246,6 +251,7 @@ def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, 
         "relit": frame.relit,
         "albedo": paste_back(frame.albedo, frame.box, height, width),
         "shading": layer_image("shading", frame, options)[0],
+        "normal": None if frame.normal is None else paste_back(frame.normal, frame.box, height, width),
     }
 
 

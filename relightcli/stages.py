@@ -119,16 +119,22 @@ class Models:
             self._sessions["body_model"] = BodyModel.load()
         return self._sessions["body_model"]
 
+    def has(self, name: str) -> bool:
+        """Whether the models folder's manifest describes model `name`."""
+        from relightcli.nets.manifest import load_manifest
+
+        return name in load_manifest()
+
     def get(self, family: str):
         if family not in self._sessions:
             from relightcli.nets.delight import DelightNet
             from relightcli.nets.face_mesh import FaceDetector, FaceMesh
-            from relightcli.nets.geometry import AONet, GeometryNet
+            from relightcli.nets.geometry import AONet, GeometryNet, GeometryPriorNet
             from relightcli.nets.pose import PersonDetector, PoseLandmarker
             from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
             from relightcli.nets.selfie import SelfieSegmenter
 
-            classes = {"geometry": GeometryNet, "ao": AONet, "delight": DelightNet,
+            classes = {"geometry": GeometryNet, "geometry_prior": GeometryPriorNet, "ao": AONet, "delight": DelightNet,
                        "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
                        "person_detector": PersonDetector, "pose_landmarks": PoseLandmarker,
                        "face_detector": FaceDetector, "face_mesh": FaceMesh,
@@ -281,9 +287,26 @@ def unit(normals: np.ndarray) -> np.ndarray:
 
 
 def stage_geometry(frame: Frame, options, models: Models) -> None:
-    net = models.get("geometry")
-    side = net_side(net, options.resolution)
-    g = net.predict(resample(frame.crop, side))
+    """Front/back normals and depth of the person in the crop. With a converged body fit
+    (stage_body_maps) the prior net refines the fitted bodies' maps into the clothed person's
+    (relightcli.nets.geometry.GeometryPriorNet); without one, the net from the image alone.
+    The note says which ran and why."""
+    from relightcli.nets.geometry import prior_channels
+
+    maps = frame.body_maps
+    if maps is not None and models.has("geometry_prior"):
+        net = models.get("geometry_prior")
+        side = net_side(net, options.resolution)
+        prior = prior_channels(maps.mask, maps.front_normal, maps.back_normal, maps.front_depth,
+                               maps.back_depth, side)
+        g = net.predict(resample(frame.crop, side), prior)
+        frame.notes["geometry"] = {"net": "geometry_prior", "prior": "fitted bodies"}
+    else:
+        net = models.get("geometry")
+        side = net_side(net, options.resolution)
+        g = net.predict(resample(frame.crop, side))
+        why = "no geometry_prior model" if maps is not None else "no converged body fit"
+        frame.notes["geometry"] = {"net": "geometry", "prior": f"none: {why}"}
     if side != options.resolution:
         size = options.resolution
         g = replace(g, front_normal=unit(resample(g.front_normal, size)), back_normal=unit(resample(g.back_normal, size)),

@@ -50,7 +50,7 @@ def test_every_layer_of_the_example(random_models, tmp_path, capsys, monkeypatch
     report = json.loads(capsys.readouterr().out)
     assert code == 0, report
     item = report["items"][0]
-    assert item["plan"]["run"] == ["people", "mask", "crop", "geometry", "ao", "reconstruct", "body", "body_maps",
+    assert item["plan"]["run"] == ["people", "mask", "crop", "body", "body_maps", "geometry", "ao", "reconstruct",
                                    "delight", "face", "raytrace", "refine", "face_refine", "compose"]
     assert item["stages"]["delight"]["light"] == "inverse rendering" and item["stages"]["delight"]["pixels"] > 0
     # The skier's face (goggles, 30 px) is found by the face mesh in the head square his pose places

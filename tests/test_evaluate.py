@@ -140,3 +140,18 @@ def test_eval_cli_on_a_folder_without_scenes_is_usage_error(tmp_path):
 
     (tmp_path / "empty").mkdir()
     assert main(["eval", str(tmp_path / "empty")]) == 2
+
+
+def test_normal_error_is_the_mean_angle_over_the_mask_where_both_give_a_normal():
+    from relightcli.evaluate import normal_metrics
+
+    truth = np.zeros((4, 4, 3), np.float32)
+    truth[..., 2] = 1.0
+    mask = np.ones((4, 4), np.float32)
+    pred = truth.copy()
+    pred[0, :] = (1.0, 0.0, 1.0)  # 45 degrees off, not unit: renormalised
+    pred[3, :] = 0.0  # no prediction there: left out, and said so
+    found = normal_metrics(pred, truth, mask)
+    assert found["covered"] == 0.75
+    assert abs(found["deg"] - 45.0 / 3) < 1e-4
+    assert normal_metrics(np.zeros_like(pred), truth, mask) == {"deg": None, "covered": 0.0}

@@ -35,9 +35,9 @@ def test_people_are_found_without_alpha():
 def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
     from relightcli import pipeline
 
-    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
+    monkeypatch.setattr(pipeline, "_ships", lambda model: model == "face_refine")
     p = plan(["relit"])
-    assert p.run == ["people", "mask", "crop", "geometry", "ao", "reconstruct", "body", "body_maps", "delight", "face",
+    assert p.run == ["people", "mask", "crop", "body", "body_maps", "geometry", "ao", "reconstruct", "delight", "face",
                      "raytrace", "refine", "face_refine", "compose"]
     assert plan(["relit"], albedo="solve").run == p.run  # the same stages: the solve needs none more
     assert "sh_shading" in p.skipped
@@ -46,9 +46,9 @@ def test_full_paper_method_runs_every_stage_but_sh(monkeypatch):
 def test_the_face_plans_the_people_although_the_input_brings_a_mask(monkeypatch):
     from relightcli import pipeline
 
-    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
+    monkeypatch.setattr(pipeline, "_ships", lambda model: model == "face_refine")
     assert "people" in plan(["relit"], has_alpha=True).run
-    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: False)
+    monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     p = plan(["relit"], method="sh9", has_alpha=True)
     assert "people" not in p.run and "face" in p.skipped["people"]
 
@@ -62,7 +62,7 @@ def test_ray_tracing_plans_the_body_fit_and_its_people_although_the_input_brings
 def test_no_face_refinement_model_plans_no_face_fit(monkeypatch):
     from relightcli import pipeline
 
-    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: False)
+    monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     p = plan(["relit"])
     assert "face" not in p.run and "face_refine" not in p.run and "refine" in p.run
     assert "face_refine" in p.skipped["face"] and "face_refine" in p.skipped["face_refine"]
@@ -78,14 +78,27 @@ def test_sh_methods_skip_ray_tracing_and_refinement(method):
 def test_norefine_skips_refinement_and_face(monkeypatch):
     from relightcli import pipeline
 
-    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
+    monkeypatch.setattr(pipeline, "_ships", lambda model: model == "face_refine")
     p = plan(["relit"], method="raytrace-norefine")
     assert "refine" not in p.run and "face" not in p.run and "ao" not in p.run
     assert p.skipped["refine"] == "--method raytrace-norefine"
 
 
-def test_normals_alone_need_only_the_geometry_net():
+def test_normals_alone_need_only_the_geometry_net(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     assert plan(["normal"]).run == ["mask", "crop", "geometry"]
+
+
+def test_the_prior_net_plans_the_body_fit_before_the_geometry(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_ships", lambda model: model == "geometry_prior")
+    p = plan(["normal"], has_alpha=True)
+    assert p.run == ["people", "mask", "crop", "body", "body_maps", "geometry"]
+    p = plan(["relit"], method="sh9")
+    assert p.run.index("body_maps") < p.run.index("geometry") < p.run.index("delight")
 
 
 def test_the_light_solve_plans_the_mesh_and_the_bodies_before_the_delighting():
@@ -258,7 +271,7 @@ def test_raytraced_ball_under_constant_light_is_white_furnace():
     env = np.full((8, 16, 3), 1.5, np.float32)
     options = RelightOptions(outputs=("shading", "mesh"), method="raytrace-norefine", resolution=48, spp=8)
     frame, plan = run_stages(image, mask, env, options, ItemReport("x"), SphereModels())
-    assert plan.run == ["people", "mask", "crop", "geometry", "reconstruct", "body", "body_maps", "raytrace"]
+    assert plan.run == ["people", "mask", "crop", "body", "body_maps", "geometry", "reconstruct", "raytrace"]
     assert frame.bodies == [] and "no converged body fit" in frame.notes["raytrace"]["body"]
     assert frame.mesh.is_watertight
     # The square mask makes a slab around the ball: the ball's top cap sees the whole
@@ -396,7 +409,7 @@ def test_face_stage_is_planned_and_runs_once_a_face_refinement_ships(monkeypatch
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
 
-    monkeypatch.setattr(pipeline, "_face_refinement_ships", lambda: True)
+    monkeypatch.setattr(pipeline, "_ships", lambda model: model == "face_refine")
     assert "face" in plan(["relit"]).run
     examples = Path(__file__).resolve().parents[1] / "examples"
     image = read_image(examples / "skier.jpg").rgb

@@ -29,7 +29,8 @@ from . import dataset
 from .eval_scenes import target_environment
 
 # product (metadata key) -> the models it is made with
-MODELS_USED = {"coarse": ("geometry", "ao"), "normals": ("geometry",)}
+MODELS_USED = {"coarse": ("geometry", "ao"), "normals": ("geometry",),
+               "priors": ("person_detector", "pose_landmarks", "body_model")}
 
 
 def models_record(product: str = "coarse") -> dict:
@@ -40,16 +41,17 @@ def models_record(product: str = "coarse") -> dict:
     return {name: manifest[name].sha256 for name in MODELS_USED[product]}
 
 
-def working_frame(sample: dict, meta: dict):
+def working_frame(sample: dict, meta: dict | None):
     """(Frame, RelightOptions) of a sample as the runtime's stages see it: the true person
-    mask, the whole sample as the working crop."""
+    mask, the whole sample as the working crop, lighting B as the target (no lighting when
+    `meta` is None: the stages that need none)."""
     from relightcli import compose
     from relightcli.pipeline import RelightOptions
     from relightcli.stages import Frame
 
     size = sample["input"].shape[0]
     options = RelightOptions(resolution=size, seed=0, threads=1)
-    env = target_environment(meta, meta.get("settings", {}).get("hdri_folder"))
+    env = None if meta is None else target_environment(meta, meta.get("settings", {}).get("hdri_folder"))
     frame = Frame(image=sample["input"], mask=sample["mask"], env=env)
     frame.box = compose.CropBox(0, 0, size, size)
     frame.crop, frame.crop_mask = sample["input"], np.clip(sample["mask"], 0.0, 1.0)
@@ -77,7 +79,37 @@ def normal_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
     return {"normal_pred": frame.normal}, {}
 
 
-PRODUCTS = {"coarse": coarse_arrays, "normals": normal_arrays}
+def prior_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
+    """({"prior_mask", "prior_normal", "prior_back_normal", "prior_front_depth",
+    "prior_back_depth"}, statistics) of one loaded sample: the fitted bodies' maps exactly as
+    the runtime makes them (stages people -> body -> body_maps on the sample as the photo, its
+    true mask as the silhouette), at the sample's resolution; all zero when no fit converged
+    (the statistics say why). The prior net's input is relightcli.nets.geometry.prior_channels
+    of these."""
+    from relightcli.stages import stage_body, stage_body_maps, stage_people
+
+    frame, options = working_frame(sample, None)
+    for stage in (stage_people, stage_body, stage_body_maps):
+        stage(frame, options, models)
+    if frame.body_scene is not None:
+        frame.body_scene.close()
+    size = sample["mask"].shape
+    maps = frame.body_maps
+    if maps is None:
+        zeros = np.zeros(size, np.float32)
+        arrays = {"prior_mask": zeros, "prior_normal": np.zeros(size + (3,), np.float32),
+                  "prior_back_normal": np.zeros(size + (3,), np.float32), "prior_front_depth": zeros,
+                  "prior_back_depth": zeros}
+    else:
+        arrays = {"prior_mask": maps.mask.astype(np.float32), "prior_normal": maps.front_normal,
+                  "prior_back_normal": maps.back_normal, "prior_front_depth": maps.front_depth,
+                  "prior_back_depth": maps.back_depth}
+    people = frame.notes.get("body", {}).get("people", [])
+    return arrays, {"people": len(frame.people), "converged": sum(p["converged"] for p in people),
+                    "reasons": [p["reason"] for p in people if not p["converged"]]}
+
+
+PRODUCTS = {"coarse": coarse_arrays, "normals": normal_arrays, "priors": prior_arrays}
 
 
 _MODELS = None
@@ -111,8 +143,9 @@ def pending(root, splits, record: dict, product: str = "coarse") -> list[tuple[s
 
 
 def run(root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None, product: str = "coarse") -> int:
-    """Add the product's arrays ("coarse": all, "normals": normal_pred only) to every pending
-    sample; returns how many were written."""
+    """Add the product's arrays ("coarse": all, "normals": normal_pred only, "priors": the
+    fitted bodies' maps) to every pending sample and say so in the card ("added"); returns how
+    many were written."""
     record = models_record(product)
     todo = pending(root, splits, record, product)[:limit]
     print(f"{len(todo)} samples to do", file=sys.stderr)
@@ -125,6 +158,13 @@ def run(root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None,
             if done % 50 == 0 or done == len(todo):
                 rate = done / (time.perf_counter() - start) * 60
                 print(f"{done}/{len(todo)} samples ({rate:.1f}/min)", file=sys.stderr, flush=True)
+    if done:
+        data = dataset.open_dataset(root)
+        added = dict(data.card.get("added", {}))
+        added[product] = {"models": record, "splits": list(splits), "samples": len(todo),
+                          "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                          "command": "python -m export.factory.coarse " + " ".join(sys.argv[1:])}
+        dataset.write_card(root, {k: v for k, v in data.card.items() if k != "format_version"} | {"added": added})
     return done
 
 
@@ -136,10 +176,12 @@ def main(argv=None) -> int:
     parser.add_argument("--limit", type=int, default=None, help="at most this many samples (a trial)")
     parser.add_argument("--normals-only", action="store_true",
                         help="add only normal_pred, the geometry net's normals (no ray tracing)")
+    parser.add_argument("--priors", action="store_true",
+                        help="add only the fitted bodies' prior maps (prior_*: pose net, body fit, body maps)")
     args = parser.parse_args(argv)
     try:
         run(args.data, [s for s in args.splits.split(",") if s], args.workers, args.limit,
-            "normals" if args.normals_only else "coarse")
+            "priors" if args.priors else "normals" if args.normals_only else "coarse")
     except RelightError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code

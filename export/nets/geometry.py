@@ -16,7 +16,7 @@ Depth convention: camera-frame Z (+Z toward the viewer) in units where the squar
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -130,6 +130,54 @@ class GeometryNet(nn.Module):
         )
 
 
+def inverse_softplus(y: torch.Tensor) -> torch.Tensor:
+    """x with softplus(x) = y, for y > 0 (written with log and exp: ONNX has no expm1)."""
+    return y + torch.log(1.0 - torch.exp(-y))
+
+
+class GeometryPriorNet(nn.Module):
+    """(image, prior) -> the GeometryNet's five maps, learned as corrections of a fitted body.
+
+    prior (N, 9, H, W): relightcli.nets.geometry.prior_channels of the fitted bodies (front and
+    back normals, front and back depth made translation-invariant, coverage), zero where no body
+    covers a pixel. The outputs start from the prior: normals are unit(prior + head), the front
+    depth prior + head, the thickness softplus(head + softplus^-1(prior thickness + 0.02)); where
+    the prior is zero the head predicts from the image alone, as the GeometryNet does."""
+
+    family = "geometry_prior"
+    output_names = GeometryNet.output_names
+    prior_channels = 9
+
+    def __init__(self, cfg: UNetConfig = GEOMETRY_CONFIGS["small"]):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = UNetBackbone(3 + self.prior_channels, cfg)
+        self.head = nn.Conv2d(cfg.width, 9, 7, padding=3)
+        with torch.no_grad():  # start near the prior
+            self.head.weight.mul_(0.1)
+            self.head.bias.zero_()
+
+    def forward(self, image: torch.Tensor, prior: torch.Tensor):
+        h = self.head(self.backbone(torch.cat([encode_display(image), prior], dim=1))[0])
+        front_depth = prior[:, 6:7] + h[:, 6:7]
+        thickness = (prior[:, 6:7] - prior[:, 7:8]).clamp(min=0.0) + 0.02
+        back_depth = front_depth - F.softplus(h[:, 7:8] + inverse_softplus(thickness))
+        return (
+            unit_vectors(prior[:, 0:3] + h[:, 0:3]),
+            unit_vectors(prior[:, 3:6] + h[:, 3:6]),
+            front_depth,
+            back_depth,
+            torch.sigmoid(h[:, 8:9]),
+        )
+
+    def io_contract(self) -> IOContract:
+        contract = GeometryNet.io_contract(self)
+        prior = image_spec("prior", self.prior_channels, "fitted body: front/back normals, front/back depth "
+                           "(minus the mean front depth), coverage; zero off the body "
+                           "(relightcli.nets.geometry.prior_channels)")
+        return replace(contract, family=self.family, inputs=contract.inputs + (prior,))
+
+
 class AONet(nn.Module):
     """image -> ambient occlusion (N, 1, H, W) in [0, 1] (1 = unoccluded)."""
 
@@ -159,6 +207,10 @@ class AONet(nn.Module):
 
 def geometry_net(size: str = "paper") -> GeometryNet:
     return GeometryNet(GEOMETRY_CONFIGS[size])
+
+
+def geometry_prior_net(size: str = "small") -> GeometryPriorNet:
+    return GeometryPriorNet(GEOMETRY_CONFIGS[size])
 
 
 def ao_net(size: str = "paper") -> AONet:

@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from export.train.config import (ALL_NETS, ConfigError, default_config_path, load_config,
+from export.train.config import (ALL_NETS, EXTRA_NETS, ConfigError, default_config_path, load_config,
                                  merge_overrides)
 from export.train.trainer import Trainer, TrainingError
 from relightcli.errors import RelightError
@@ -29,7 +29,7 @@ def open_dataset(root):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m export.train", description=__doc__.splitlines()[0])
-    parser.add_argument("net", choices=list(ALL_NETS) + ["all"], help="the net to train, or all of them in turn")
+    parser.add_argument("net", choices=list(ALL_NETS + EXTRA_NETS) + ["all"], help="the net to train, or all of them in turn")
     parser.add_argument("--config", help="JSON config (one net only; default configs/NET_SIZE.json)")
     parser.add_argument("--size", default="small", help="config size for the default configs: small or paper")
     parser.add_argument("--data", required=True, help="dataset root (export.factory output)")

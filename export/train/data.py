@@ -13,7 +13,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 
 # Keys that are not images of the sample's (H, W) and so are never flipped or cropped.
 NON_SPATIAL = {"light_a", "light_b", "exposure", "face_box", "rect"}
-NORMAL_KEYS = ("normal", "back_normal", "normal_pred")
+NORMAL_KEYS = ("normal", "back_normal", "normal_pred", "prior_normal", "prior_back_normal")
 LIGHT_KEYS = ("light_a", "light_b")
 
 

@@ -68,6 +68,11 @@ def fake_sample(rng: np.random.Generator, size: int = 32) -> dict[str, np.ndarra
     background = np.stack([0.3 + 0.2 * y, 0.4 + 0.1 * x, 0.5 - 0.1 * x * y], -1)
     photo = image_a * mask[..., None] + background * (1 - mask[..., None])
     photo = srgb_to_linear(np.round(linear_to_srgb(np.clip(photo, 0, 1)) * 255) / 255)
+    prior_mask = (mask > 0) & np.roll(mask > 0, 1, 0) & np.roll(mask > 0, -1, 0) & np.roll(mask > 0, 1, 1)
+    prior_mask = (prior_mask & np.roll(mask > 0, -1, 1)).astype(np.float32)
+    tilted = normal + np.array([0, 0, 0.3], np.float32) * mask[..., None]
+    prior_normal = tilted / np.maximum(np.linalg.norm(tilted, axis=-1, keepdims=True), 1e-8) * prior_mask[..., None]
+    prior_back_normal = prior_normal * np.array([1, 1, -1], dtype=np.float32)
     rows, cols = np.nonzero(~in_body & (mask > 0))
     face_box = (np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], dtype=np.float32)
                 if rows.size else np.full(4, -1, dtype=np.float32))
@@ -77,6 +82,10 @@ def fake_sample(rng: np.random.Generator, size: int = 32) -> dict[str, np.ndarra
         "rect": np.array([-1.2, 1.2, -1.2, 1.2]), "shading_a": shading_a, "shading_b": shading_b,
         "image_a": image_a, "relit_b": albedo * shading_b, "light_a": light_a, "light_b": light_b,
         "exposure": exposure, "face_box": face_box,
+        # a fitted naked body's prior maps (export.factory.coarse --priors): the person minus a
+        # 1-pixel rim of clothes, normals tilted toward +z, the surface a little behind
+        "prior_mask": prior_mask, "prior_normal": prior_normal, "prior_back_normal": prior_back_normal,
+        "prior_front_depth": (front_depth - 0.02) * prior_mask, "prior_back_depth": (back_depth + 0.02) * prior_mask,
     }
     return {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items()}
 

@@ -23,6 +23,7 @@ from export.train.losses import (angular_loss, fft_l1, gradient_l1, light_loss, 
 from relightcli import metrics
 from relightcli.compose import RATIO_DARK, anchor_albedo, ratio_albedo
 from relightcli.io.images import linear_to_srgb
+from relightcli.nets.geometry import prior_channels
 from relightcli.nets.refine import shading_scale
 from relightcli.render.sh import irradiance_basis, project_sh, sh_irradiance_shading
 
@@ -134,6 +135,35 @@ class GeometryTask(Task):
             "back_depth_mae": masked_mae(out["back_depth"][0], example["back_depth"][0], mask),
             "mask_mae": float(np.abs(out["mask"][0] - mask).mean()),
         }
+
+
+class GeometryPriorTask(GeometryTask):
+    """(image, fitted body's prior maps) -> the geometry maps, with the GeometryTask's loss.
+    The prior is relightcli.nets.geometry.prior_channels of the sample's "prior_*" arrays (the
+    runtime's own fit, export.factory.coarse --priors): what the runtime feeds the net.
+    Metrics add the errors on the pixels the body covers, of the net and of the prior alone."""
+
+    family = "geometry_prior"
+    input_keys = ("image", "prior")
+
+    def example(self, sample, rng):
+        if "prior_mask" not in sample:
+            raise ConfigError("the dataset has no prior maps: add them with "
+                              "`python -m export.factory.coarse DATA --priors`")
+        example = super().example(sample, rng)
+        prior = prior_channels(sample["prior_mask"], sample["prior_normal"], sample["prior_back_normal"],
+                               sample["prior_front_depth"], sample["prior_back_depth"], sample["mask"].shape[0])
+        return dict(example, prior=chw(prior))
+
+    def metrics(self, out, example):
+        found = super().metrics(out, example)
+        covered = example["mask"][0] * (example["prior"][8] > 0.5)
+        if covered.sum() > 0:
+            truth = hwc(example["front_normal"])
+            found["covered_share"] = float(covered.sum() / max(float((example["mask"][0] > 0.5).sum()), 1.0))
+            found["normal_angle_deg_covered"] = mean_angle_deg(hwc(out["front_normal"]), truth, covered)
+            found["prior_normal_angle_deg_covered"] = mean_angle_deg(hwc(example["prior"][0:3]), truth, covered)
+        return found
 
 
 class AOTask(Task):
@@ -372,7 +402,7 @@ class FaceRefineTask(GANTask):
                 "face_psnr_body": psnr_b, "face_psnr_gain_over_body": psnr_r - psnr_b}
 
 
-TASKS = {t.family: t for t in (GeometryTask, AOTask, DelightTask, BodyRefineTask, FaceRefineTask)}
+TASKS = {t.family: t for t in (GeometryTask, GeometryPriorTask, AOTask, DelightTask, BodyRefineTask, FaceRefineTask)}
 
 
 def make_task(config: TrainConfig) -> Task:

@@ -72,13 +72,15 @@ def test_export_declares_dynamic_hw(exported, family):
 def _runtime_predict(family, models_dir, h, w):
     """Run the family's runtime class on an odd-sized (h, w) person-like input."""
     from relightcli.nets.delight import DelightNet
-    from relightcli.nets.geometry import AONet, GeometryNet
+    from relightcli.nets.geometry import AONet, GeometryNet, GeometryPriorNet
     from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
 
     feeds = person_like_inputs(build_net(family, "small").io_contract(), h, w)
     hwc = {k: np.ascontiguousarray(v[0].transpose(1, 2, 0)) for k, v in feeds.items()}
     if family == "geometry":
         return GeometryNet(models_dir=models_dir, threads=1).predict(hwc["image"]).front_normal
+    if family == "geometry_prior":
+        return GeometryPriorNet(models_dir=models_dir, threads=1).predict(hwc["image"], hwc["prior"]).front_normal
     if family == "ao":
         return AONet(models_dir=models_dir, threads=1).predict(hwc["image"])
     if family == "delight":

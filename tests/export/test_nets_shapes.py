@@ -34,6 +34,26 @@ def test_geometry_outputs_are_unit_normals_ordered_depths_and_a_mask():
     assert ((mask >= 0) & (mask <= 1)).all()
 
 
+def test_the_prior_net_starts_from_the_fitted_body_and_keeps_depths_ordered():
+    torch.manual_seed(0)
+    net = build_net("geometry_prior", "small")
+    (front_n, back_n, front_d, back_d, mask), feeds = run(net, 32, 48)
+    prior = torch.from_numpy(feeds["prior"])
+    covered = prior[:, 8] > 0.5
+    assert front_n.shape == (1, 3, 32, 48) and mask.shape == (1, 1, 32, 48)
+    # unit where the prior covers (off it the untrained head's tiny vectors meet the epsilon)
+    torch.testing.assert_close(front_n.norm(dim=1)[covered], torch.ones(int(covered.sum())), atol=1e-5, rtol=0)
+    assert (back_d <= front_d).all()
+    # untrained, the corrections are small: the output is near the prior where the body covers
+    cosine = (front_n * prior[:, 0:3]).sum(dim=1)[covered]
+    assert cosine.mean() > 0.95
+    assert (front_d[:, 0] - prior[:, 6]).abs()[covered].mean() < 0.2
+    # the prior matters: without it the same net gives other normals
+    with torch.no_grad():
+        bare = net(torch.from_numpy(feeds["image"]), torch.zeros_like(prior))[0]
+    assert (bare - front_n).abs().max() > 0.1
+
+
 def test_ao_is_in_unit_range():
     ao, _ = run(build_net("ao", "small"), 32, 32)
     assert ao.shape == (1, 1, 32, 32) and ((ao >= 0) & (ao <= 1)).all()

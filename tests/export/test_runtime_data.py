@@ -5,6 +5,7 @@ shading (export/factory/face_closeups.py), plus the dataset's add_arrays they wr
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -141,3 +142,47 @@ def test_closeups_hold_the_face_path_inputs_and_target(copy, tmp_path):
     # the target and the coarse face shading are in the same units: a few x apart at most
     ratio = np.median(sample["coarse_face_b"][face]) / np.median(sample["shading_b"][face])
     assert 0.3 < ratio < 3.0
+
+
+def test_the_prior_maps_are_the_runtimes_own():
+    """export.factory.coarse --priors makes a sample's prior maps with the runtime's stages:
+    on the T-pose render they equal the body maps `relight` itself computes for that photo and
+    its mask at the same resolution, and the prior net's input is built from them by the
+    runtime's prior_channels."""
+    import cv2
+
+    from relightcli import compose
+    from relightcli.batch import ItemReport
+    from relightcli.io.images import read_image
+    from relightcli.nets.geometry import prior_channels
+    from relightcli.pipeline import RelightOptions, run_stages
+
+    data = Path(__file__).resolve().parents[1] / "data"
+    photo = read_image(data / "tpose_render.png").rgb
+    mask = (cv2.imread(str(data / "tpose_render_mask.png"), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
+    # the sample is the runtime's working crop of the photo (a factory sample is one), so the
+    # runtime's own crop of it is the whole of it
+    box = compose.person_crop_box(mask, 256)
+    image, mask = compose.crop_square(photo, box), (compose.crop_square(mask, box) > 0.5).astype(np.float32)
+    assert compose.person_crop_box(mask, 256) == compose.CropBox(0, 0, 256, 256)
+    arrays, stats = coarse.prior_arrays({"input": image, "mask": mask}, {}, Models(threads=1))
+    assert stats["converged"] == 1
+    options = RelightOptions(outputs=("body_normal",), resolution=256, threads=1)
+    frame, _ = run_stages(image, mask, np.ones((8, 16, 3), np.float32), options, ItemReport("tpose"))
+    maps = frame.body_maps
+    assert np.array_equal(arrays["prior_mask"], maps.mask.astype(np.float32))
+    for key, ours in (("prior_normal", maps.front_normal), ("prior_back_normal", maps.back_normal),
+                      ("prior_front_depth", maps.front_depth), ("prior_back_depth", maps.back_depth)):
+        assert np.array_equal(arrays[key], ours), key
+    prior = prior_channels(arrays["prior_mask"], arrays["prior_normal"], arrays["prior_back_normal"],
+                           arrays["prior_front_depth"], arrays["prior_back_depth"], 128)
+    assert prior.shape == (128, 128, 9) and np.isfinite(prior).all()
+    assert (prior[..., 8] > 0.5).mean() > 0.1
+
+
+def test_a_sample_without_a_person_found_gets_empty_priors():
+    sample = {"input": np.zeros((64, 64, 3), np.float32), "mask": np.zeros((64, 64), np.float32)}
+    arrays, stats = coarse.prior_arrays(sample, {}, Models(threads=1))
+    assert stats["people"] == 0 and stats["converged"] == 0
+    assert not arrays["prior_mask"].any() and not arrays["prior_normal"].any()
+    assert arrays["prior_normal"].shape == (64, 64, 3)

@@ -29,7 +29,7 @@ def small_config(net, **extra):
     return TrainConfig(net=net, size="small", seed=0, steps=4, **{**OVERRIDES, **extra})
 
 
-@pytest.mark.parametrize("net", ["geometry", "ao", "delight", "body_refine", "face_refine"])
+@pytest.mark.parametrize("net", ["geometry", "geometry_prior", "ao", "delight", "body_refine", "face_refine"])
 def test_a_few_steps_lower_the_loss(net, dataset, tmp_path):
     trainer = Trainer(small_config(net), dataset, tmp_path)
     batch = trainer.next_batch()
