@@ -15,6 +15,8 @@ the normals' angle on the person's pixels the fitted body covers:
              manifest has one
 
 A scene without a converged fit runs the net alone in every variant (the runtime's fallback).
+`--body-weight W` sets the fitted bodies' share of the traced shading (stages.BODY_SHADING_WEIGHT,
+shipped 0.5) for every variant.
 """
 
 from __future__ import annotations
@@ -30,8 +32,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from relightcli import compose  # noqa: E402
+from relightcli import compose, stages  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
+from relightcli.errors import RelightError  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene, normal_metrics, scene_metrics  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
@@ -98,19 +101,25 @@ def main() -> int:
     parser.add_argument("scenes", help="eval scene folders (python -m export.factory.eval_scenes)")
     parser.add_argument("--use-gt-mask", action="store_true")
     parser.add_argument("--variants", default="net,body,blend,prior_net")
+    parser.add_argument("--body-weight", type=float, default=None)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if args.body_weight is not None:
+        stages.BODY_SHADING_WEIGHT = args.body_weight
     variants = args.variants.split(",")
     models = {v: VariantModels(2, v) for v in variants}
     rows = {v: [] for v in variants}
     for folder in find_scenes(args.scenes):
         for variant in variants:
-            rows[variant].append({"scene": folder.name, **measure(folder, variant, models[variant], args.use_gt_mask)})
+            try:
+                rows[variant].append({"scene": folder.name, **measure(folder, variant, models[variant], args.use_gt_mask)})
+            except RelightError as error:  # no person found: reported, left out of the means
+                rows[variant].append({"scene": folder.name, "error": str(error)})
         print(folder.name, {v: {k: round(x, 2) for k, x in rows[v][-1].items() if isinstance(x, float)}
                             for v in variants}, flush=True)
     keys = ("relit", "albedo", "shading", "normal_deg", "normal_deg_covered")
     summary = {v: {k: float(np.mean([r[k] for r in rs if r.get(k) is not None])) for k in keys}
-               for v, rs in rows.items()}
+               | {"scenes": sum("error" not in r for r in rs)} for v, rs in rows.items()}
     print(f"{'variant':<10}" + "".join(f"{k:>20}" for k in keys))
     for variant, means in summary.items():
         print(f"{variant:<10}" + "".join(f"{means[k]:>20.3f}" for k in keys))

@@ -476,8 +476,11 @@ def build_scene(frame: Frame, options) -> None:
     frame.notes["scene_builds"] += 1
 
 
-# The fitted bodies' share of the coarse shading where a fit converged (stage_raytrace)
-BODY_SHADING_WEIGHT = 0.5
+# The fitted bodies' share of the coarse shading where a fit converged (stage_raytrace): 0.5
+# chosen with the image-alone geometry net, 0.3 once the prior net shaped the reconstruction
+# (validation, true mask, shading / relit: 0.5 19.46 / 16.52, 0.3 19.65 / 16.54, 0 18.83 / 16.13;
+# python bench/bench_geometry_prior.py data/evalval512 --use-gt-mask --body-weight W)
+BODY_SHADING_WEIGHT = 0.3
 
 
 def stage_body_maps(frame: Frame, options, models: Models) -> None:

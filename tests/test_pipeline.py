@@ -206,7 +206,10 @@ def test_albedo_is_the_photo_over_the_estimated_shading_or_the_nets(source):
     assert dark < 0.25 < bright
 
 
-def test_people_and_mask_stages_run_only_without_alpha():
+def test_people_and_mask_stages_run_only_without_alpha(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_ships", lambda model: False)  # no prior net: no body fit
     image, mask = photo_with_person()
     env = np.ones((8, 16, 3), np.float32)
     options = RelightOptions(outputs=("normal",), method="sh9", resolution=32)
