@@ -1,5 +1,6 @@
 """The README's relighting-quality table: `relight eval` for every method, with the predicted
-and with the true person mask, as markdown rows (and the JSON of each run under --out).
+and with the true person mask, as markdown rows (and the JSON of each run under --out); the
+normals column is their mean angle to the true normals in degrees.
 
     python bench/eval_table.py data/eval512 [--out bench/results/eval512] [--resolution 512]
 
@@ -65,8 +66,9 @@ def main() -> int:
             result = json.loads(path.read_text())
             label = (f"ours `{method}`" + (", true mask" if true_mask else "")
                      + (f", {albedo} albedo (`--albedo {albedo}`)" if albedo else ""))
+            normal = f"{result['normal']['deg']:.1f}" if "normal" in result else "n/a"
             rows.append(f"| {label} | {cell(result['relit'])} | {cell(result['albedo'])} | "
-                        f"{cell(result['shading'])} | {result['seconds_per_image']:.1f} |")
+                        f"{cell(result['shading'])} | {normal} | {result['seconds_per_image']:.1f} |")
     (out / "table.md").write_text("\n".join(rows) + "\n")
     print("\n".join(rows))
     return 0
