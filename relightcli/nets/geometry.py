@@ -37,7 +37,10 @@ class GeometryNet(ModelSession):
         """image: (H, W, 3) float32 linear RGB, values in [0, 1] (the net clips)."""
         check_hwc(image, 3, "image")
         padded, pad = pad_to_multiple(image, self.multiple, "reflect")
-        out = self.run({"image": hwc_to_nchw(padded)})
+        return self._maps(self.run({"image": hwc_to_nchw(padded)}), pad)
+
+    def _maps(self, out: dict, pad) -> GeometryMaps:
+        """The session's NCHW outputs, cropped back to the image, as GeometryMaps."""
         maps = {k: crop_padding(nchw_to_hwc(out[k]), pad) for k in self.output_names}
         return GeometryMaps(
             front_normal=maps["front_normal"],
@@ -114,12 +117,4 @@ class GeometryPriorNet(GeometryNet):
         check_hwc(prior, len(PRIOR_CHANNELS), "prior")
         padded, pad = pad_to_multiple(image, self.multiple, "reflect")
         prior_padded, _ = pad_to_multiple(prior, self.multiple, "zero")
-        out = self.run({"image": hwc_to_nchw(padded), "prior": hwc_to_nchw(prior_padded)})
-        maps = {k: crop_padding(nchw_to_hwc(out[k]), pad) for k in self.output_names}
-        return GeometryMaps(
-            front_normal=maps["front_normal"],
-            back_normal=maps["back_normal"],
-            front_depth=maps["front_depth"][..., 0],
-            back_depth=maps["back_depth"][..., 0],
-            mask=maps["mask"][..., 0],
-        )
+        return self._maps(self.run({"image": hwc_to_nchw(padded), "prior": hwc_to_nchw(prior_padded)}), pad)
