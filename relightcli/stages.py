@@ -294,17 +294,16 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
     from relightcli.nets.geometry import prior_channels
 
     maps = frame.body_maps
-    if maps is not None and models.has("geometry_prior"):
-        net = models.get("geometry_prior")
-        side = net_side(net, options.resolution)
-        prior = prior_channels(maps.mask, maps.front_normal, maps.back_normal, maps.front_depth,
-                               maps.back_depth, side)
-        g = net.predict(resample(frame.crop, side), prior)
+    with_prior = maps is not None and models.has("geometry_prior")
+    net = models.get("geometry_prior" if with_prior else "geometry")
+    side = net_side(net, options.resolution)
+    crop = resample(frame.crop, side)
+    if with_prior:
+        g = net.predict(crop, prior_channels(maps.mask, maps.front_normal, maps.back_normal,
+                                             maps.front_depth, maps.back_depth, side))
         frame.notes["geometry"] = {"net": "geometry_prior", "prior": "fitted bodies"}
     else:
-        net = models.get("geometry")
-        side = net_side(net, options.resolution)
-        g = net.predict(resample(frame.crop, side))
+        g = net.predict(crop)
         why = "no geometry_prior model" if maps is not None else "no converged body fit"
         frame.notes["geometry"] = {"net": "geometry", "prior": f"none: {why}"}
     if side != options.resolution:
