@@ -13,6 +13,8 @@ the normals' angle on the person's pixels the fitted body covers:
   blend      unit(net + body) where the body covers: the two averaged, the net's elsewhere
   prior_net  the prior net (models/geometry_prior.onnx, or $RELIGHT_MODELS_DIR's), when the
              manifest has one
+  true_normals  the prior net's maps with the scene's true normals (gt_normal.exr) in place
+             of the predicted ones: the ceiling of what better normals alone can bring
 
 A scene without a converged fit runs the net alone in every variant (the runtime's fallback).
 `--body-weight W` sets the fitted bodies' share of the traced shading (stages.BODY_SHADING_WEIGHT,
@@ -66,7 +68,7 @@ class VariantModels(Models):
 
     def has(self, name: str) -> bool:
         if name == "geometry_prior":
-            return self.variant != "net" and (self.variant != "prior_net" or super().has(name))
+            return self.variant in ("body", "blend") or (self.variant != "net" and super().has(name))
         return super().has(name)
 
     def get(self, family: str):
@@ -75,12 +77,28 @@ class VariantModels(Models):
         return super().get(family)
 
 
+def with_true_normals(geometry_stage, truth: np.ndarray):
+    """The geometry stage, then the true normals (full frame) cropped into its maps."""
+    def stage(frame, options, models):
+        geometry_stage(frame, options, models)
+        normal = unit(compose.crop_square(truth, frame.box))
+        frame.geometry = replace(frame.geometry, front_normal=normal)
+        frame.normal = normal * (frame.crop_mask[..., None] > 0.5)
+    return stage
+
+
 def measure(folder: Path, variant: str, models: Models, use_gt_mask: bool) -> dict:
     scene = load_scene(folder)
     options = RelightOptions(outputs=("relit", "albedo", "shading"), method="raytrace-norefine", threads=2)
     image = read_image(scene.input_path)
-    frame, _ = run_stages(image.rgb, scene.mask if use_gt_mask else None, load_envmap(scene.target_path),
-                          options, ItemReport(str(folder)), models)
+    geometry_stage = stages.STAGES["geometry"]
+    if variant == "true_normals":
+        stages.STAGES["geometry"] = with_true_normals(geometry_stage, scene.normal)
+    try:
+        frame, _ = run_stages(image.rgb, scene.mask if use_gt_mask else None, load_envmap(scene.target_path),
+                              options, ItemReport(str(folder)), models)
+    finally:
+        stages.STAGES["geometry"] = geometry_stage
     height, width = image.rgb.shape[:2]
     normal = compose.paste_back(frame.normal, frame.box, height, width)
     pred = {"relit": frame.relit, "albedo": compose.paste_back(frame.albedo, frame.box, height, width),

@@ -528,7 +528,8 @@ def stage_raytrace(frame: Frame, options, models: Models) -> None:
     """Coarse shading under the target environment, pixel-aligned with the crop: the
     reconstructed mesh ray-traced (build_scene), averaged with equal weights
     (BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (stage_body_maps) over the
-    people whose body fit converged. Person pixels a mesh does not cover (limbs thinner than two
+    people whose body fit converged (the target error is the blend's, shared by the two
+    renders in proportion to their weights: blend_targets). Person pixels a mesh does not cover (limbs thinner than two
     pixels on the reconstruction; clothes and hair around the naked body; the soft edge of the
     mask, where the smoothed mesh has shrunk) take the shading of the nearest covered pixel.
 
@@ -583,18 +584,45 @@ def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
 
     spp, target = sampling_effort(options)
     wanted = frame.crop_mask > 0
-    result = shade_environment(frame.scene, frame.hits, light, spp=spp, target_error=target,
+    blended = frame.body_scene is not None
+    own_target, body_target = blend_targets(target, BODY_SHADING_WEIGHT, body_shading_pixels(frame).all()) \
+        if blended and target is not None else (target, target)
+    result = shade_environment(frame.scene, frame.hits, light, spp=spp, target_error=own_target,
                                seed=options.seed, workers=options.threads)
     shading, note = fill_uncovered(result.mean, frame.hits.mask, wanted), _trace_note(result)
-    if frame.body_scene is None:
+    if not blended:
         note["body"] = "no converged body fit: the reconstruction's shading alone"
         return shading, note
-    body = shade_environment(frame.body_scene, frame.body_hits, light, spp=spp, target_error=target,
+    body = shade_environment(frame.body_scene, frame.body_hits, light, spp=spp, target_error=body_target,
                              seed=options.seed, workers=options.threads)
     body_shading = fill_uncovered(body.mean, frame.body_hits.mask, wanted)
     weight = body_weight(frame)[..., None]
     note["body"] = {"weight": BODY_SHADING_WEIGHT, **_trace_note(body)}
-    return (1.0 - weight) * shading + weight * body_shading, note
+    mean = (1.0 - weight) * shading + weight * body_shading
+    # The blend's own error (the two renders are independent): what the target is met on
+    stderr = np.hypot((1.0 - weight) * fill_uncovered(result.stderr, frame.hits.mask, wanted),
+                      weight * fill_uncovered(body.stderr, frame.body_hits.mask, wanted))
+    note["reconstruction_rel_error"] = note["rel_error"]
+    note["rel_error"] = median_relative_error(mean, stderr, wanted & frame.hits.mask)
+    return mean, note
+
+
+def blend_targets(target: float, weight: float, everywhere: bool) -> tuple[float, float]:
+    """Relative-error targets of the reconstruction's and the bodies' renders whose blend
+    (1 - weight) * own + weight * body reaches `target` at the least cost: a render's samples
+    in proportion to its weight (minimise 1/n_own + 1/n_body at fixed (1 - w)^2 / n_own +
+    w^2 / n_body), i.e. target / sqrt(1 - w) and target / sqrt(w). Where a person's fit did not
+    converge (not `everywhere`) the reconstruction is shaded alone and keeps the target."""
+    own = target / np.sqrt(1.0 - weight) if everywhere and weight < 1.0 else target
+    body = target / np.sqrt(weight) if weight > 0.0 else target
+    return float(own), float(body)
+
+
+def median_relative_error(mean: np.ndarray, stderr: np.ndarray, where: np.ndarray) -> float:
+    """Median over `where` of stderr / mean on the channel average (0 where the mean is 0)."""
+    m, e = mean[where].mean(axis=-1), stderr[where].mean(axis=-1)
+    rel = np.where(m > 0, e / np.where(m > 0, m, 1.0), 0.0)
+    return float(np.median(rel)) if rel.size else 0.0
 
 
 def sampling_effort(options) -> tuple[int, float | None]:

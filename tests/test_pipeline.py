@@ -347,6 +347,42 @@ def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction
     assert frame.notes["raytrace"]["body"]["rays"] > 0
 
 
+def test_the_blend_of_two_renders_reaches_the_target_with_samples_in_proportion_to_weight():
+    from relightcli.stages import blend_targets
+
+    for weight in (0.1, 0.3, 0.5, 0.9):
+        own, body = blend_targets(0.04, weight, everywhere=True)
+        # independent renders: the blend's variance is the weighted sum of theirs
+        assert np.hypot((1 - weight) * own, weight * body) == pytest.approx(0.04)
+        # the cheapest split: samples (1 / error^2) in proportion to the weights
+        assert (1 / own ** 2) / (1 / body ** 2) == pytest.approx((1 - weight) / weight)
+    # a person shaded by the reconstruction alone keeps the whole target there
+    assert blend_targets(0.04, 0.3, everywhere=False)[0] == 0.04
+    assert blend_targets(0.04, 0.0, everywhere=True) == (0.04, 0.04)
+
+
+def test_the_blended_shading_reports_its_own_error():
+    from types import SimpleNamespace
+
+    from relightcli.stages import stage_body_maps, stage_raytrace
+
+    models = PlateBodyModels()
+    frame, options = _ball_frame(models)
+    options.spp, options.target_error = None, 0.05
+    frame.bodies = [SimpleNamespace(vertices=PLATE_VERTICES, converged=True)]
+    frame.scene = None
+    try:
+        stage_body_maps(frame, options, models)
+        stage_raytrace(frame, options, models)
+    finally:
+        frame.scene.close(), frame.body_scene.close()
+    note = frame.notes["raytrace"]
+    # the plate sees the whole (constant) sky: exact; at every pixel the blend's relative
+    # error is the ball's times (1 - w) m / ((1 - w) m + w 1.5) < 1, and so is the median's
+    assert note["body"]["rel_error"] == 0.0
+    assert note["rel_error"] <= note["reconstruction_rel_error"] <= 0.05
+
+
 def test_a_person_whose_fit_did_not_converge_keeps_the_reconstruction_shading():
     from types import SimpleNamespace
 
