@@ -57,7 +57,9 @@ class Person:
     vertex_albedo: (V, 3) float32 linear in [0, 1]. face_part: (F,) uint8 index into PART_NAMES.
     face_vertex_ids: (K,) int64 vertices of the facial region (for face boxes).
     metadata: seed, split, shape parameters, stature, pose, outfit, skin tone, hair colour,
-    cloth patterns.
+    cloth patterns. joints: (B, 3) float32 m, the posed bone heads in the vertices' frame
+    (the rig's bone order, `base_model().skeleton.names`): the true skeleton a fit is
+    measured against.
     """
 
     vertices: np.ndarray
@@ -68,6 +70,7 @@ class Person:
     face_part: np.ndarray
     face_vertex_ids: np.ndarray
     metadata: dict = field(default_factory=dict)
+    joints: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -260,12 +263,12 @@ def _outfit_parts(rng: np.random.Generator, base: BaseModel, shaped: np.ndarray,
 
 
 def _pose_parts(parts: list[_Part], base: BaseModel, shaped: np.ndarray, rotations: np.ndarray
-                ) -> tuple[list[np.ndarray], np.ndarray]:
+                ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     heads, _ = base.skeleton.joint_positions(shaped)
     transforms = skinning.bone_transforms(base.skeleton, heads, rotations)
     posed = [skinning.skin_vertices(p.rest, p.weights, transforms) for p in parts]
-    root = transforms[0] @ np.append(heads[0], 1.0)
-    return posed, root
+    joints = np.einsum("bij,bj->bi", transforms, np.c_[heads, np.ones(len(heads))])[:, :3]
+    return posed, joints[0], joints
 
 
 def build_person(seed: int, split: str) -> Person:
@@ -292,11 +295,11 @@ def build_person(seed: int, split: str) -> Person:
     visible = _visible_body_faces(base, np.concatenate(hidden))
     body = _Part(shaped, base.weights, base.mesh.faces[visible], base.mesh.uvs[visible], 0, skin)
     parts = [body, eyes] + garments
-    posed, root = _pose_parts(parts, base, shaped, rotations)
-    return _assemble(parts, posed, root, face_region(base, shaped), metadata)
+    posed, root, joints = _pose_parts(parts, base, shaped, rotations)
+    return _assemble(parts, posed, root, face_region(base, shaped), metadata, joints)
 
 
-def _assemble(parts, posed, root, face_mask, metadata) -> Person:
+def _assemble(parts, posed, root, face_mask, metadata, joints) -> Person:
     texture, uvs = _atlas(parts)
     offsets = np.cumsum([0] + [len(v) for v in posed])
     faces = np.concatenate([p.faces + o for p, o in zip(parts, offsets)])
@@ -305,7 +308,8 @@ def _assemble(parts, posed, root, face_mask, metadata) -> Person:
     used[faces.ravel()] = True
     new_id = np.cumsum(used) - 1
     vertices = vertices[used]
-    vertices -= np.array([root[0], vertices[:, 1].min(), root[2]])  # feet on y = 0, root above 0
+    offset = np.array([root[0], vertices[:, 1].min(), root[2]])  # feet on y = 0, root above 0
+    vertices -= offset
     faces = new_id[faces].astype(np.int32)
     face_uv = np.concatenate(uvs).astype(np.float32)
     face_ids = np.flatnonzero(used[:len(face_mask)] & face_mask)
@@ -313,4 +317,5 @@ def _assemble(parts, posed, root, face_mask, metadata) -> Person:
         vertices=vertices.astype(np.float32), faces=faces, face_uv=face_uv, texture=texture,
         vertex_albedo=_vertex_albedo(texture, faces, face_uv, len(vertices)),
         face_part=np.concatenate([np.full(len(p.faces), p.part, np.uint8) for p in parts]),
-        face_vertex_ids=new_id[face_ids].astype(np.int64), metadata=metadata)
+        face_vertex_ids=new_id[face_ids].astype(np.int64), metadata=metadata,
+        joints=(joints - offset).astype(np.float32))

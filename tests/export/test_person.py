@@ -54,6 +54,19 @@ def test_units_and_placement(person):
     assert person.faces.max() < len(v) and person.faces.min() >= 0
 
 
+def test_the_true_skeleton_sits_inside_the_posed_body(person):
+    from export.factory.person import base_model
+
+    names = base_model().skeleton.names
+    assert person.joints.shape == (len(names), 3) and person.joints.dtype == np.float32
+    # in the vertices' frame: each main joint lies within a few cm of the posed surface
+    for bone in ("upperarm01.L", "lowerarm01.R", "wrist.L", "upperleg01.R", "lowerleg01.L", "foot.R", "head"):
+        gap = np.linalg.norm(person.vertices - person.joints[names.index(bone)], axis=1).min()
+        assert gap < 0.12, bone
+    lo, hi = person.vertices.min(axis=0), person.vertices.max(axis=0)
+    assert np.all(person.joints >= lo - 0.01) and np.all(person.joints <= hi + 0.01)
+
+
 def test_albedo_in_unit_range(person):
     assert person.texture.dtype == np.float32 and person.vertex_albedo.dtype == np.float32
     assert person.texture.min() >= 0 and person.texture.max() <= 1

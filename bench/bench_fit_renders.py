@@ -1,0 +1,147 @@
+"""The body fit against the true skeleton of the factory's renders (issue 18).
+
+    python bench/bench_fit_renders.py data/evalval512 data/factory512val --split val [--use-gt-mask]
+
+Every eval scene folder is a factory sample (`val_000003` is sample 000003 of the split); the
+factory rebuilds its person (export.factory.person.build_person: the same seed gives the same
+posed body) and so knows where the 12 main joints are (bone heads: shoulders, elbows, wrists,
+hips, knees, ankles). The runtime runs on the scene's photo up to the body fit, and its fitted
+joints are compared with the true ones:
+
+  2D cm     distance in the image plane (the render's pixel size in metres)
+  3D cm     hip-centred metric distance (the fit's own scale turns crop units into metres)
+  depth cm  the same, along the camera axis only
+  bone deg  angle between fitted and true directions of the 8 limb bones (upper arms,
+            forearms, thighs, shins): what the body's normals inherit
+  facing deg  the torso's facing direction (hips and shoulders) fitted vs true: yaw and pitch
+
+Scenes where nobody is found or the fit does not converge are counted and left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from export.factory import dataset  # noqa: E402
+from export.factory.person import base_model, build_person  # noqa: E402
+from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
+from relightcli.batch import ItemReport  # noqa: E402
+from relightcli.errors import RelightError  # noqa: E402
+from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
+from relightcli.io.envmap import load_envmap  # noqa: E402
+from relightcli.io.images import read_image  # noqa: E402
+from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
+from relightcli.stages import Models  # noqa: E402
+
+# (left, right) bone heads of the 12 main joints
+JOINTS = ("upperarm01", "lowerarm01", "wrist", "upperleg01", "lowerleg01", "foot")
+MAIN = tuple(f"{bone}.{side}" for bone in JOINTS for side in "LR")
+# Limb bones as (from, to) joints
+BONES = tuple((f"{a}.{s}", f"{b}.{s}") for a, b in (("upperarm01", "lowerarm01"), ("lowerarm01", "wrist"),
+                                                     ("upperleg01", "lowerleg01"), ("lowerleg01", "foot"))
+              for s in "LR")
+HIPS, SHOULDERS = ("upperleg01.L", "upperleg01.R"), ("upperarm01.L", "upperarm01.R")
+
+
+def facing(joints: dict) -> np.ndarray:
+    """Unit forward direction of the torso: (left hip - right hip) x (hips -> shoulders)."""
+    left = joints["upperleg01.L"] - joints["upperleg01.R"]
+    up = (joints["upperarm01.L"] + joints["upperarm01.R"] - joints["upperleg01.L"] - joints["upperleg01.R"]) / 2
+    forward = np.cross(left, up)
+    return forward / np.linalg.norm(forward)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def true_joints(data, split: str, sample_id: str) -> tuple[dict, dict, np.ndarray]:
+    """(metres: name -> camera-frame (3,), pixels: name -> (col, row), rect) of a sample."""
+    meta = data.meta(split, sample_id)
+    person = build_person(meta["person"]["seed"], split)
+    names = base_model().skeleton.names
+    camera = camera_vertices(person.joints, meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
+    rect = data.load_raw(split, sample_id, "rect").astype(np.float64)
+    pixels = world_to_pixel(camera, rect, int(meta["settings"]["resolution"]))
+    return ({n: camera[names.index(n)] for n in MAIN}, {n: pixels[names.index(n)] for n in MAIN}, rect)
+
+
+def fitted_joints(frame, models) -> tuple[dict, dict] | None:
+    """(metres, hip-centred camera frame; photo pixels) of the first converged fit, or None."""
+    fits = [fit for fit in frame.bodies if fit.converged]
+    if not fits:
+        return None
+    fit, model = fits[0], models.body_model()
+    _, joints, _ = model.posed(fit.shape, fit.rotations, fit.translation, fit.scale)
+    names = list(model.joint_names)
+    resolution, box = frame.crop_mask.shape[0], frame.box
+    metres, pixels = {}, {}
+    for name in MAIN:
+        x, y, z = joints[names.index(name)]
+        col, row = (x + 1.0) / 2.0 * resolution, (1.0 - y) / 2.0 * resolution
+        pixels[name] = np.array([box.x0 + col * box.size / resolution, box.y0 + row * box.size / resolution])
+        metres[name] = np.array([x, y, z]) / fit.scale
+    return metres, pixels
+
+
+def measure(folder: Path, data, split: str, use_gt_mask: bool, models) -> dict:
+    scene = load_scene(folder)
+    sample_id = folder.name.split("_", 1)[1]
+    truth_m, truth_px, rect = true_joints(data, split, sample_id)
+    options = RelightOptions(outputs=("relit",), method="sh9", threads=2)
+    frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask if use_gt_mask else None,
+                          load_envmap(scene.target_path), options, ItemReport(str(folder)), models)
+    fitted = fitted_joints(frame, models)
+    if fitted is None:
+        return {"scene": folder.name, "skipped": "no converged fit"}
+    fit_m, fit_px = fitted
+    metres_per_px = (rect[1] - rect[0]) / frame.image.shape[1]
+    centre = lambda j: {n: v - (j[HIPS[0]] + j[HIPS[1]]) / 2 for n, v in j.items()}  # noqa: E731
+    tm, fm = centre(truth_m), centre(fit_m)
+    return {
+        "scene": folder.name,
+        "2d_cm": float(np.mean([np.linalg.norm(fit_px[n] - truth_px[n]) for n in MAIN]) * metres_per_px * 100),
+        "3d_cm": float(np.mean([np.linalg.norm(fm[n] - tm[n]) for n in MAIN]) * 100),
+        "depth_cm": float(np.mean([abs(fm[n][2] - tm[n][2]) for n in MAIN]) * 100),
+        "bone_deg": float(np.mean([angle_deg(fm[b] - fm[a], tm[b] - tm[a]) for a, b in BONES])),
+        "facing_deg": angle_deg(facing(fm), facing(tm)),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scenes", help="eval scene folders (python -m export.factory.eval_scenes)")
+    parser.add_argument("factory", help="the factory dataset they came from")
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--use-gt-mask", action="store_true")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    data, models = dataset.open_dataset(args.factory), Models(2)
+    rows = []
+    for folder in find_scenes(args.scenes):
+        try:
+            rows.append(measure(folder, data, args.split, args.use_gt_mask, models))
+        except RelightError as error:  # no person found: counted, left out of the means
+            rows.append({"scene": folder.name, "skipped": str(error)})
+        print({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
+    keys = ("2d_cm", "3d_cm", "depth_cm", "bone_deg", "facing_deg")
+    fitted = [r for r in rows if "skipped" not in r]
+    summary = {k: float(np.mean([r[k] for r in fitted])) for k in keys} if fitted else {}
+    summary.update(scenes=len(rows), fitted=len(fitted))
+    print(" ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
+    if args.out:
+        args.out.write_text(json.dumps({"summary": summary, "scenes": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
