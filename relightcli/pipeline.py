@@ -29,7 +29,7 @@ STAGE_NEEDS = {
     "body": ("people", "crop"),  # body model fitted to each person's pose and silhouette
     "body_maps": ("body",),  # the fitted bodies' front/back depth and normals in the crop
     "geometry": ("crop",),  # front/back normals and depth (with the prior net: also body_maps)
-    "ao": ("crop",),  # ambient occlusion net
+    "ao": ("crop",),  # ambient occlusion net (the AO layer: also body_maps, see stage_needs)
     "reconstruct": ("geometry",),  # watertight mesh + Laplacian smoothing
     "delight": ("geometry",),  # albedo + input light (--albedo solve: also the meshes, see stage_needs)
     "face": ("people", "geometry"),  # face detector + mesh on the people's heads, morphable-model fit
@@ -93,11 +93,14 @@ class Plan:
 def stage_needs(stage: str, options: RelightOptions) -> tuple[str, ...]:
     """The stages `stage` needs under these options: the de-lighting's light solve
     (--albedo solve) ray-traces the mesh and the fitted bodies as the shading does; the geometry
-    refines the fitted bodies' maps when the prior net ships."""
+    refines the fitted bodies' maps when the prior net ships; the AO layer blends in the fitted
+    bodies' traced AO."""
     if stage == "delight" and options.albedo == "solve":
         return STAGE_NEEDS["delight"] + ("reconstruct", "body_maps")
     if stage == "geometry" and _ships("geometry_prior"):
         return STAGE_NEEDS["geometry"] + ("body_maps",)
+    if stage == "ao" and "ao" in options.outputs:
+        return STAGE_NEEDS["ao"] + ("body_maps",)
     return STAGE_NEEDS[stage]
 
 

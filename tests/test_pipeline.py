@@ -347,6 +347,39 @@ def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction
     assert frame.notes["raytrace"]["body"]["rays"] > 0
 
 
+def test_the_ao_layer_blends_in_the_fitted_bodies_traced_ao_and_the_refinement_keeps_the_nets():
+    from types import SimpleNamespace
+
+    from relightcli.stages import BODY_AO_WEIGHT, stage_ao, stage_body_maps
+
+    models = PlateBodyModels()
+    frame, options = _ball_frame(models)
+    frame.bodies = [SimpleNamespace(vertices=PLATE_VERTICES, converged=True)]
+    ao_net = SimpleNamespace(predict=lambda image: np.full(image.shape[:2], 0.6, np.float32))
+    models.get = lambda family: ao_net if family == "ao" else PlateBodyModels.get(models, family)
+    try:
+        stage_body_maps(frame, options, models)
+        options.outputs = ("shading",)  # the refinement's input only: nothing traced
+        stage_ao(frame, options, models)
+        net = frame.ao_net.copy()
+        assert frame.ao is frame.ao_net and "ao" not in frame.notes
+        options.outputs = ("ao",)
+        stage_ao(frame, options, models)
+    finally:
+        frame.body_scene.close()
+    # the plate alone in its scene sees the whole hemisphere: its AO is 1 wherever it covers
+    np.testing.assert_array_equal(frame.ao_net, net)
+    np.testing.assert_allclose(frame.ao, (1.0 - BODY_AO_WEIGHT) * net + BODY_AO_WEIGHT * 1.0, atol=1e-6)
+    assert frame.notes["ao"]["body_weight"] == BODY_AO_WEIGHT
+
+
+def test_the_ao_layer_plans_the_body_fit(monkeypatch):
+    from relightcli import pipeline
+
+    monkeypatch.setattr(pipeline, "_ships", lambda model: False)
+    assert plan(["ao"], has_alpha=True).run == ["people", "mask", "crop", "body", "body_maps", "ao"]
+
+
 def test_the_blend_of_two_renders_reaches_the_target_with_samples_in_proportion_to_weight():
     from relightcli.stages import blend_targets
 
