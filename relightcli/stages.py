@@ -147,12 +147,15 @@ class Models:
 def stage_people(frame: Frame, options, models: Models) -> None:
     """Every person in the photo: BlazePose's person detector, then per person the landmark net
     (33 keypoints, 33 metric world landmarks, a segmentation) in a crop turned upright
-    (relightcli.nets.pose), on the photo as sRGB. When no body is found but the face detector
+    (relightcli.nets.pose), on the photo as sRGB. When the detector finds nobody and the input
+    brings a mask, the landmark net looks in the mask's box (find_person_in_mask: BlazePose's
+    detector misses some people its landmark net sees, e.g. T-posed synthetic figures, or a
+    visor that hides the face). When no body is found but the face detector
     and face mesh find a face in the whole photo (a close portrait: head and shoulders), the
     selfie segmentation gives that person's mask. The report lists who was found, who the
     landmark net turned down, and the portrait fallback when it ran."""
     from relightcli.nets.face_mesh import find_face
-    from relightcli.nets.pose import find_people
+    from relightcli.nets.pose import find_people, find_person_in_mask
 
     frame.view = frame.view or PerceptionView.of(frame.image)
     srgb, scale = frame.view.image, frame.view.scale
@@ -162,8 +165,16 @@ def stage_people(frame: Frame, options, models: Models) -> None:
                              "turned_down": [p.summary(scale) for p in people if not p.found]}
     if frame.people:
         return
-    if frame.mask is not None:  # the portrait's selfie mask would only stand in for the input's
-        frame.notes["people"]["portrait"] = "no body found; the input brings the mask"
+    if frame.mask is not None:  # the mask says where the person is: the landmark net there
+        height, width = srgb.shape[:2]
+        mask = cv2.resize(frame.mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        person = find_person_in_mask(srgb, mask, models.get("pose_landmarks"))
+        if person is not None and person.found:
+            frame.people = [person]
+            frame.notes["people"]["found"] = [person.summary(scale)]
+            frame.notes["people"]["from_mask"] = "no person detected: landmarks in the mask's box"
+        else:  # the portrait's selfie mask would only stand in for the input's
+            frame.notes["people"]["portrait"] = "no body found; the input brings the mask"
         return
     face, why = find_face(srgb, None, models.get("face_detector"), models.get("face_mesh"))
     if face is None:

@@ -135,7 +135,10 @@ class StandInModels(Models):
                           np.array([[cx, cy], [cx, cy - radius]], np.float64), 0.9)]
 
     def landmarks(self, image, rect):
-        """A person whose segmentation is the disc, blurred as an enlarged net map is."""
+        """A person whose segmentation is the disc, blurred as an enlarged net map is; no
+        person (presence 0) without a disc."""
+        if self.people_disc is None:
+            return Pose(rect, 0.0, np.zeros((33, 5)), np.zeros((33, 3)), np.zeros(image.shape[:2], np.float32), rect)
         cx, cy, radius = self.people_disc
         y, x = np.mgrid[:image.shape[0], :image.shape[1]] + 0.5
         mask = cv2.GaussianBlur(((x - cx) ** 2 + (y - cy) ** 2 < radius ** 2).astype(np.float32), (0, 0), 2.0)
@@ -223,6 +226,32 @@ def test_people_and_mask_stages_run_only_without_alpha(monkeypatch):
     assert frame.notes["mask"]["source"] == "pose segmentation of 1 person"
     assert len(frame.notes["people"]["found"]) == 1 and frame.notes["people"]["turned_down"] == []
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
+
+
+def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody():
+    from relightcli.stages import Frame, stage_people
+
+    class Undetected(StandInModels):
+        def detect(self, image, rect=None):
+            return []
+
+    models = Undetected()
+    models.people_disc = (37.0, 50.0, 20.0)
+    rects, landmarks = [], models.landmarks
+    models.landmarks = lambda image, rect: rects.append(rect) or landmarks(image, rect)
+    image, mask = photo_with_person()  # the mask's box: columns [25, 50), rows [20, 80)
+    frame = Frame(image=image, mask=mask, env=None)
+    stage_people(frame, None, models)
+    assert len(frame.people) == 1 and "from_mask" in frame.notes["people"]
+    assert frame.notes["people"]["found"][0]["detection_score"] == 0.0
+    # the landmark crop is centred on the box, upright, its side 1.25 x the box's larger extent
+    first = rects[0]
+    assert first.centre == pytest.approx((37.5, 50.0)) and first.rotation == pytest.approx(0.0, abs=1e-9)
+    assert first.width == pytest.approx(75.0) and first.height == pytest.approx(75.0)
+    # no mask, no detection: nobody (the portrait fallback finds no face either)
+    frame = Frame(image=image, mask=None, env=None)
+    stage_people(frame, None, models)
+    assert frame.people == [] and "from_mask" not in frame.notes["people"]
 
 
 def test_the_peoples_mask_is_snapped_to_the_photos_edges():

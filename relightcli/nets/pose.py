@@ -164,6 +164,24 @@ def find_people(image: np.ndarray, detector: PersonDetector, landmarker: PoseLan
     return _people(image, detector.detect(image), landmarker, refine)
 
 
+def find_person_in_mask(image: np.ndarray, mask: np.ndarray, landmarker: PoseLandmarker,
+                        refine: bool = True) -> Person | None:
+    """The person a mask (h, w) in [0, 1] of `image` outlines, when the detector found none:
+    the landmark net run in the square around the mask's bounding box (as the detector's
+    keypoints would place it: centred, half side the box's larger half extent x ROI_SCALE,
+    upright), then, with `refine`, in the crop its own landmarks place. None for an empty mask;
+    the person's `found` says whether the landmark net sees a person there. The detection is a
+    stand-in: the mask's box, score 0."""
+    rows, cols = np.nonzero(mask > 0.5)
+    if rows.size == 0:
+        return None
+    x0, x1, y0, y1 = cols.min(), cols.max() + 1.0, rows.min(), rows.max() + 1.0
+    centre = np.array([(x0 + x1) / 2.0, (y0 + y1) / 2.0])
+    edge = centre - np.array([0.0, max(x1 - x0, y1 - y0) / 2.0])  # straight up: the crop upright
+    stand_in = Detection(np.array([x0, y0, x1, y1], np.float64), np.stack([centre, edge]), 0.0)
+    return _people(image, [stand_in], landmarker, refine)[0]
+
+
 def _people(image, detections, landmarker, refine) -> list[Person]:
     people = []
     for detection in detections:
