@@ -643,19 +643,20 @@ def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
         if blended and target is not None else (target, target)
     result = shade_environment(frame.scene, frame.hits, light, spp=spp, target_error=own_target,
                                seed=options.seed, workers=options.threads)
-    shading, note = fill_uncovered(result.mean, frame.hits.mask, wanted), _trace_note(result)
+    # means and errors filled together: one distance transform per render
+    own = fill_uncovered(np.concatenate([result.mean, result.stderr], axis=-1), frame.hits.mask, wanted)
+    shading, note = np.ascontiguousarray(own[..., :3]), _trace_note(result)
     if not blended:
         note["body"] = "no converged body fit: the reconstruction's shading alone"
         return shading, note
     body = shade_environment(frame.body_scene, frame.body_hits, light, spp=spp, target_error=body_target,
                              seed=options.seed, workers=options.threads)
-    body_shading = fill_uncovered(body.mean, frame.body_hits.mask, wanted)
+    body_filled = fill_uncovered(np.concatenate([body.mean, body.stderr], axis=-1), frame.body_hits.mask, wanted)
     weight = body_weight(frame)[..., None]
     note["body"] = {"weight": BODY_SHADING_WEIGHT, **_trace_note(body)}
-    mean = (1.0 - weight) * shading + weight * body_shading
+    mean = (1.0 - weight) * shading + weight * body_filled[..., :3]
     # The blend's own error (the two renders are independent): what the target is met on
-    stderr = np.hypot((1.0 - weight) * fill_uncovered(result.stderr, frame.hits.mask, wanted),
-                      weight * fill_uncovered(body.stderr, frame.body_hits.mask, wanted))
+    stderr = np.hypot((1.0 - weight) * own[..., 3:], weight * body_filled[..., 3:])
     note["reconstruction_rel_error"] = note["rel_error"]
     note["rel_error"] = median_relative_error(mean, stderr, wanted & frame.hits.mask)
     return mean, note
