@@ -580,11 +580,11 @@ def _trace_note(result) -> dict:
 
 def stage_raytrace(frame: Frame, options, models: Models) -> None:
     """Coarse shading under the target environment, pixel-aligned with the crop: the
-    reconstructed mesh ray-traced (build_scene), averaged with equal weights
-    (BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (stage_body_maps) over the
+    reconstructed mesh ray-traced (build_scene), averaged (the bodies' share
+    BODY_SHADING_WEIGHT) with the fitted naked bodies ray-traced (stage_body_maps) over the
     people whose body fit converged (the target error is the blend's, shared by the two
-    renders in proportion to their weights: blend_targets). Person pixels a mesh does not cover (limbs thinner than two
-    pixels on the reconstruction; clothes and hair around the naked body; the soft edge of the
+    renders in proportion to their weights: blend_targets). Person pixels a mesh does not
+    cover (limbs thinner than two pixels on the reconstruction; clothes and hair around the naked body; the soft edge of the
     mask, where the smoothed mesh has shrunk) take the shading of the nearest covered pixel.
 
     Measured (issue 18): `relight eval DATA --method raytrace-norefine [--use-gt-mask]`, relit /
