@@ -82,7 +82,10 @@ def person_like_inputs(contract: IOContract, height: int, width: int, seed: int 
     for t in contract.inputs:
         if t.name not in library:
             raise KeyError(f"no realistic example for input {t.name!r}")
-        feeds[t.name] = library[t.name][None].astype(np.float32)
+        value = library[t.name]
+        if t.name == "prior" and t.shape[1] == prior.shape[0] + 1:  # the AO prior: the body's AO too
+            value = np.concatenate([prior, ao * mask[None]])
+        feeds[t.name] = value[None].astype(np.float32)
     return feeds
 
 

@@ -130,12 +130,13 @@ class Models:
         if family not in self._sessions:
             from relightcli.nets.delight import DelightNet
             from relightcli.nets.face_mesh import FaceDetector, FaceMesh
-            from relightcli.nets.geometry import AONet, GeometryNet, GeometryPriorNet
+            from relightcli.nets.geometry import AONet, AOPriorNet, GeometryNet, GeometryPriorNet
             from relightcli.nets.pose import PersonDetector, PoseLandmarker
             from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
             from relightcli.nets.selfie import SelfieSegmenter
 
-            classes = {"geometry": GeometryNet, "geometry_prior": GeometryPriorNet, "ao": AONet, "delight": DelightNet,
+            classes = {"geometry": GeometryNet, "geometry_prior": GeometryPriorNet, "ao": AONet,
+                       "ao_prior": AOPriorNet, "delight": DelightNet,
                        "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
                        "person_detector": PersonDetector, "pose_landmarks": PoseLandmarker,
                        "face_detector": FaceDetector, "face_mesh": FaceMesh,
@@ -327,9 +328,10 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
     frame.normal = g.front_normal * (frame.crop_mask[..., None] > 0.5)
 
 
-# Where a body fit converged, the AO layer blends the net's map with the fitted bodies' own
-# AO, ray-traced (BODY_AO_SPP samples at every other pixel of every other row, then upsampled:
-# AO is smooth), the bodies' share BODY_AO_WEIGHT. AO MAE over the person (python
+# Where a body fit converged and the AO prior net is not in the models folder, the AO layer
+# blends the net's map with the fitted bodies' own AO, ray-traced (BODY_AO_SPP samples at every
+# other pixel of every other row, then upsampled: AO is smooth), the bodies' share
+# BODY_AO_WEIGHT. (The AO prior net, shipped, beat it: models/MODEL_CARD.md.) AO MAE over the person (python
 # bench/bench_ao.py DATA --split S --weights 0,0.5,0.7,1): the 20 validation renders at 512
 # (16 fitted) 0.0642 (net), 0.0564, 0.0554, 0.0566 (bodies alone): 0.7 chosen; the 20 test
 # renders (20 fitted) 0.0844 -> 0.0833. The refinement net keeps reading the net's map, which
@@ -341,37 +343,58 @@ BODY_AO_SPP = 32
 
 def stage_ao(frame: Frame, options, models: Models) -> None:
     """Ambient occlusion in [0, 1]: the AO net's map from the crop (frame.ao_net, the
-    refinement's input); when the AO layer is asked for and a body fit converged, the layer
-    blends it with the fitted bodies' ray-traced AO (body_ao) over those people."""
+    refinement's input, the map it was trained on). When the AO layer is asked for and a body
+    fit converged, the layer (frame.ao) uses the fitted bodies' ray-traced AO (body_ao): the AO
+    prior net's map from the crop, the bodies' maps and that AO (relightcli.nets.geometry.
+    AOPriorNet) when the models folder has it, else the AO net's map blended with the bodies'
+    AO over those people."""
+    from relightcli.nets.geometry import ao_prior_channels, prior_channels
+
     net = models.get("ao")
-    frame.ao_net = resample(net.predict(resample(frame.crop, net_side(net, options.resolution))), options.resolution)
+    side = net_side(net, options.resolution)
+    frame.ao_net = resample(net.predict(resample(frame.crop, side)), options.resolution)
     frame.ao = frame.ao_net
-    wanted = "ao" in options.outputs and frame.body_scene is not None
-    body = body_ao(frame, options.seed) if wanted else None
+    if "ao" not in options.outputs or frame.body_scene is None:
+        return
+    usable = body_shading_pixels(frame)
+    if models.has("ao_prior"):
+        prior_net = models.get("ao_prior")
+        side = net_side(prior_net, options.resolution)
+        # traced at every other pixel of the net's side, as the data factory traced it
+        body = body_ao(frame, options.seed, step=max(1, 2 * options.resolution // side))
+        if body is not None:
+            maps = frame.body_maps
+            prior = ao_prior_channels(prior_channels(maps.mask, maps.front_normal, maps.back_normal,
+                                                     maps.front_depth, maps.back_depth, side), body * usable)
+            frame.ao = resample(prior_net.predict(resample(frame.crop, side), prior), options.resolution)
+            frame.notes["ao"] = {"net": "ao_prior"}
+        return
+    body = body_ao(frame, options.seed)
     if body is not None:
-        weight = np.float32(BODY_AO_WEIGHT) * body_shading_pixels(frame)
+        weight = np.float32(BODY_AO_WEIGHT) * usable
         frame.ao = ((1.0 - weight) * frame.ao_net + weight * body).astype(np.float32)
-        frame.notes["ao"] = {"body_weight": BODY_AO_WEIGHT}
+        frame.notes["ao"] = {"net": "ao", "body_weight": BODY_AO_WEIGHT}
 
 
-def body_ao(frame: Frame, seed: int) -> np.ndarray | None:
+def body_ao(frame: Frame, seed: int, step: int = 2) -> np.ndarray | None:
     """(R, R) float32: the fitted bodies' ambient occlusion (integrator.ambient_occlusion,
-    cosine-weighted, unlimited distance), traced at half resolution and upsampled; person
-    pixels the bodies do not cover take their nearest covered pixel's. None when the bodies
-    cover none of the traced pixels."""
+    cosine-weighted, unlimited distance), traced at every `step`-th pixel of every `step`-th
+    row and upsampled (AO is smooth); person pixels the bodies do not cover take their nearest
+    covered pixel's. None when the bodies cover none of the traced pixels."""
     from dataclasses import replace
 
     from relightcli.render.integrator import ambient_occlusion
 
     hits = frame.body_hits
     grid = np.zeros_like(hits.mask)
-    grid[::2, ::2] = True
+    grid[::step, ::step] = True
     if not (hits.mask & grid).any():
         return None
     traced = ambient_occlusion(frame.body_scene, replace(hits, mask=hits.mask & grid), spp=BODY_AO_SPP, seed=seed)
-    half = fill_uncovered(traced.mean[::2, ::2, 0], traced.mask[::2, ::2], np.ones(grid[::2, ::2].shape, bool))
+    coarse = fill_uncovered(traced.mean[::step, ::step, 0], traced.mask[::step, ::step],
+                            np.ones(grid[::step, ::step].shape, bool))
     side = frame.crop_mask.shape[0]
-    return np.clip(cv2.resize(half, (side, side), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
+    return np.clip(cv2.resize(coarse, (side, side), interpolation=cv2.INTER_LINEAR), 0.0, 1.0)
 
 
 def stage_delight(frame: Frame, options, models: Models) -> None:

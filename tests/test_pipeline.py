@@ -386,6 +386,7 @@ def test_the_ao_layer_blends_in_the_fitted_bodies_traced_ao_and_the_refinement_k
     frame.bodies = [SimpleNamespace(vertices=PLATE_VERTICES, converged=True)]
     ao_net = SimpleNamespace(predict=lambda image: np.full(image.shape[:2], 0.6, np.float32))
     models.get = lambda family: ao_net if family == "ao" else PlateBodyModels.get(models, family)
+    models.has = lambda name: name != "ao_prior"  # no AO prior net: the blend
     try:
         stage_body_maps(frame, options, models)
         options.outputs = ("shading",)  # the refinement's input only: nothing traced
@@ -400,6 +401,45 @@ def test_the_ao_layer_blends_in_the_fitted_bodies_traced_ao_and_the_refinement_k
     np.testing.assert_array_equal(frame.ao_net, net)
     np.testing.assert_allclose(frame.ao, (1.0 - BODY_AO_WEIGHT) * net + BODY_AO_WEIGHT * 1.0, atol=1e-6)
     assert frame.notes["ao"]["body_weight"] == BODY_AO_WEIGHT
+
+
+def test_the_ao_prior_net_reads_the_fitted_bodies_maps_and_traced_ao():
+    from types import SimpleNamespace
+
+    from relightcli.stages import stage_ao, stage_body_maps
+
+    models = PlateBodyModels()
+    frame, options = _ball_frame(models)
+    frame.bodies = [SimpleNamespace(vertices=PLATE_VERTICES, converged=True)]
+    seen = {}
+
+    def prior_net(image, prior):  # stands in for the AO prior net: what it gets, as its map
+        seen["image"], seen["prior"] = image, prior
+        return prior[..., 9].copy()
+
+    nets = {"ao": SimpleNamespace(predict=lambda image: np.full(image.shape[:2], 0.6, np.float32)),
+            "ao_prior": SimpleNamespace(predict=prior_net, trained_resolution=24)}
+    models.get = lambda family: nets.get(family) or PlateBodyModels.get(models, family)
+    models.has = lambda name: True
+    options.outputs = ("ao",)
+    try:
+        stage_body_maps(frame, options, models)
+        stage_ao(frame, options, models)
+    finally:
+        frame.body_scene.close()
+    # at the net's side, ten channels: the body maps' nine and the bodies' AO, 1 on the lone plate
+    assert seen["image"].shape == (24, 24, 3) and seen["prior"].shape == (24, 24, 10)
+    np.testing.assert_allclose(seen["prior"][..., 9], 1.0, atol=1e-6)
+    import cv2
+
+    coverage = cv2.resize(frame.body_maps.mask.astype(np.float32), (24, 24), interpolation=cv2.INTER_AREA)
+    assert coverage.max() == 1.0
+    np.testing.assert_allclose(seen["prior"][..., 8], coverage, atol=1e-6)  # the plate where the person is
+    # the layer is the prior net's map at the working resolution; the refinement keeps the net's
+    assert frame.ao.shape == (48, 48)
+    np.testing.assert_allclose(frame.ao, 1.0, atol=1e-6)
+    np.testing.assert_array_equal(frame.ao_net, np.float32(0.6))
+    assert frame.notes["ao"] == {"net": "ao_prior"}
 
 
 def test_the_ao_layer_plans_the_body_fit(monkeypatch):

@@ -10,7 +10,8 @@ sample's metadata ("coarse"); a sample whose record matches the current models i
 the command resumes, and re-running after new nets ship redoes everything.
 
 `--normals-only` adds just "normal_pred" (the geometry net alone, no ray tracing; recorded
-as "normals" in the metadata).
+as "normals" in the metadata); `--priors` the fitted bodies' maps ("prior_*"); `--prior-ao`
+the fitted bodies' maps again with their ray-traced AO ("prior_ao").
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ from .eval_scenes import target_environment
 
 # product (metadata key) -> the models it is made with
 MODELS_USED = {"coarse": ("geometry", "ao"), "normals": ("geometry",),
-               "priors": ("person_detector", "pose_landmarks", "body_model")}
+               "priors": ("person_detector", "pose_landmarks", "body_model"),
+               "prior_ao": ("person_detector", "pose_landmarks", "body_model")}
 
 
 def models_record(product: str = "coarse") -> dict:
@@ -79,22 +81,24 @@ def normal_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
     return {"normal_pred": frame.normal}, {}
 
 
-def prior_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
+def prior_arrays(sample: dict, meta: dict, models, with_ao: bool = False) -> tuple[dict, dict]:
     """({"prior_mask", "prior_normal", "prior_back_normal", "prior_front_depth",
     "prior_back_depth"}, statistics) of one loaded sample: the fitted bodies' maps exactly as
     the runtime makes them (stages people -> body -> body_maps on the sample as the photo, its
     true mask as the silhouette), at the sample's resolution; all zero when no fit converged
     (the statistics say why). The prior net's input is relightcli.nets.geometry.prior_channels
-    of these."""
-    from relightcli.stages import stage_body, stage_body_maps, stage_people
+    of these. with_ao: also "prior_ao", the bodies' ray-traced ambient occlusion as the runtime
+    traces it (relightcli.stages.body_ao) where a fit converged, zero elsewhere."""
+    from relightcli.stages import body_ao, body_shading_pixels, stage_body, stage_body_maps, stage_people
 
     frame, options = working_frame(sample, None)
     for stage in (stage_people, stage_body, stage_body_maps):
         stage(frame, options, models)
-    if frame.body_scene is not None:
-        frame.body_scene.close()
     size = sample["mask"].shape
-    maps = frame.body_maps
+    maps, ao = frame.body_maps, None
+    if frame.body_scene is not None:
+        ao = body_ao(frame, options.seed) if with_ao else None
+        frame.body_scene.close()
     if maps is None:
         zeros = np.zeros(size, np.float32)
         arrays = {"prior_mask": zeros, "prior_normal": np.zeros(size + (3,), np.float32),
@@ -104,12 +108,22 @@ def prior_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
         arrays = {"prior_mask": maps.mask.astype(np.float32), "prior_normal": maps.front_normal,
                   "prior_back_normal": maps.back_normal, "prior_front_depth": maps.front_depth,
                   "prior_back_depth": maps.back_depth}
+    if with_ao:
+        arrays["prior_ao"] = np.zeros(size, np.float32) if ao is None else \
+            (ao * body_shading_pixels(frame)).astype(np.float32)
     people = frame.notes.get("body", {}).get("people", [])
     return arrays, {"people": len(frame.people), "converged": sum(p["converged"] for p in people),
                     "reasons": [p["reason"] for p in people if not p["converged"]]}
 
 
-PRODUCTS = {"coarse": coarse_arrays, "normals": normal_arrays, "priors": prior_arrays}
+def prior_ao_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
+    """`prior_arrays` with "prior_ao": the prior maps redone with it, so both come from the
+    same fit (the AO prior net reads them together)."""
+    return prior_arrays(sample, meta, models, with_ao=True)
+
+
+PRODUCTS = {"coarse": coarse_arrays, "normals": normal_arrays, "priors": prior_arrays,
+            "prior_ao": prior_ao_arrays}
 
 
 _MODELS = None
@@ -178,10 +192,13 @@ def main(argv=None) -> int:
                         help="add only normal_pred, the geometry net's normals (no ray tracing)")
     parser.add_argument("--priors", action="store_true",
                         help="add only the fitted bodies' prior maps (prior_*: pose net, body fit, body maps)")
+    parser.add_argument("--prior-ao", action="store_true",
+                        help="add the fitted bodies' prior maps again, with their ray-traced AO (prior_ao)")
     args = parser.parse_args(argv)
     try:
         run(args.data, [s for s in args.splits.split(",") if s], args.workers, args.limit,
-            "priors" if args.priors else "normals" if args.normals_only else "coarse")
+            "prior_ao" if args.prior_ao else "priors" if args.priors else
+            "normals" if args.normals_only else "coarse")
     except RelightError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code

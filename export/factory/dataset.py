@@ -11,7 +11,7 @@ it; names not listed are stored and returned as float32):
     unit8   uint8 round(255 x), x in [0, 1]: "mask", "coverage" (beyond the contract: the
             share of each pixel the person covers, with which the photo was composited),
             "face_pixels" (export/factory/face_closeups.py), "prior_mask"
-    unit16  uint16 round(65535 x), x in [0, 1]: "albedo", "ao", "ao_pred"
+    unit16  uint16 round(65535 x), x in [0, 1]: "albedo", "ao", "ao_pred", "prior_ao"
     normal  float16 unit vectors, renormalised on load (zero rows stay zero): "normal",
             "back_normal", "normal_pred", "prior_normal", "prior_back_normal"
     hdr16   float16 of x / s with s = max |x| kept as "<name>__scale" (float64), so relative
@@ -24,8 +24,7 @@ so a sample file is complete or absent (this is what makes generation resumable)
 
 `add_arrays` adds arrays to a written sample (export/factory/coarse.py adds what the runtime's
 own stages make of the sample: "coarse_shading_b", "ao_pred", "normal_pred", and the fitted bodies'
-prior maps "prior_*"); the stored bytes of the others
-are kept as they are.
+prior maps and ray-traced AO "prior_*"); the stored bytes of the others are kept as they are.
 """
 
 from __future__ import annotations
@@ -48,7 +47,7 @@ ENCODINGS = {
     "ao": "unit16", "normal": "normal", "back_normal": "normal", "shading_a": "hdr16",
     "shading_b": "hdr16", "image_a": "hdr16", "relit_b": "hdr16", "front_depth": "float32",
     "back_depth": "float32", "rect": "float32", "face_box": "float32", "exposure": "float32",
-    "light_a": "float32", "light_b": "float32", "coarse_shading_b": "hdr16", "ao_pred": "unit16",
+    "light_a": "float32", "light_b": "float32", "coarse_shading_b": "hdr16", "ao_pred": "unit16", "prior_ao": "unit16",
     "coarse_face_b": "hdr16", "body_shading_b": "hdr16", "face_pixels": "unit8",
     "normal_pred": "normal", "prior_mask": "unit8", "prior_normal": "normal", "prior_back_normal": "normal",
 }

@@ -8,12 +8,13 @@ from torch import nn
 from .body_refine import BODY_REFINE_CONFIGS, BodyRefineNet
 from .delight import DELIGHT_CONFIGS, DelightNet
 from .face_refine import FACE_REFINE_CONFIGS, FaceRefineNet
-from .geometry import AO_CONFIGS, GEOMETRY_CONFIGS, AONet, GeometryNet, GeometryPriorNet
+from .geometry import AO_CONFIGS, GEOMETRY_CONFIGS, AONet, AOPriorNet, GeometryNet, GeometryPriorNet
 
 FAMILIES = {
     "geometry": (GeometryNet, GEOMETRY_CONFIGS),
     "geometry_prior": (GeometryPriorNet, GEOMETRY_CONFIGS),
     "ao": (AONet, AO_CONFIGS),
+    "ao_prior": (AOPriorNet, AO_CONFIGS),
     "delight": (DelightNet, DELIGHT_CONFIGS),
     "body_refine": (BodyRefineNet, BODY_REFINE_CONFIGS),
     "face_refine": (FaceRefineNet, FACE_REFINE_CONFIGS),

@@ -4,6 +4,7 @@
   gets from PIFuHD we get from this net: the two depth maps (front and back surface along the
   camera ray) and the mask make a watertight, pixel-aligned mesh; the back normals shade it.
 - `ao` net: ambient occlusion (1 ch, sigmoid) with skip connections, as the paper says.
+- `geometry_prior` and `ao_prior` nets: the same, with a fitted body's maps as a second input.
 
 Both are the same encoder/decoder (7x7 stem, `n_down` stride-2 convs, residual bottleneck,
 bilinear-upsample + conv decoder, optional U-Net skips, 7x7 head); only the heads differ.
@@ -203,6 +204,40 @@ class AONet(nn.Module):
             normalisation="clip to [0,1], x**(1/2.2)*2-1 inside the graph",
             config=asdict(self.cfg),
         )
+
+
+class AOPriorNet(nn.Module):
+    """(image, prior) -> ambient occlusion (N, 1, H, W) in [0, 1], learned as a correction of
+    the fitted bodies' ray-traced AO.
+
+    prior (N, 10, H, W): relightcli.nets.geometry.ao_prior_channels, the GeometryPriorNet's nine
+    channels and the bodies' AO (zero where no fit converged). Where a body covers a pixel the
+    output starts from its AO, sigmoid(head + coverage x logit(body AO)); elsewhere the head
+    predicts from the image alone, as the AONet does."""
+
+    family = "ao_prior"
+    output_names = AONet.output_names
+    prior_channels = 10
+
+    def __init__(self, cfg: UNetConfig = AO_CONFIGS["small"]):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = UNetBackbone(3 + self.prior_channels, cfg)
+        self.head = nn.Conv2d(cfg.width, 1, 7, padding=3)
+        with torch.no_grad():  # start near the prior
+            self.head.weight.mul_(0.1)
+            self.head.bias.zero_()
+
+    def forward(self, image: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+        h = self.head(self.backbone(torch.cat([encode_display(image), prior], dim=1))[0])
+        body = prior[:, 9:10].clamp(0.02, 0.98)
+        return torch.sigmoid(h + prior[:, 8:9] * torch.log(body / (1.0 - body)))
+
+    def io_contract(self) -> IOContract:
+        contract = AONet.io_contract(self)
+        prior = image_spec("prior", self.prior_channels, "fitted body: the geometry prior's nine channels "
+                           "and the bodies' ray-traced AO (relightcli.nets.geometry.ao_prior_channels)")
+        return replace(contract, family=self.family, inputs=contract.inputs + (prior,))
 
 
 def geometry_net(size: str = "paper") -> GeometryNet:

@@ -16,13 +16,14 @@ from export.nets import FAMILIES
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 ALL_NETS = ("geometry", "ao", "delight", "body_refine", "face_refine")
 # Nets trained on their own command only (not in `all`): they need arrays the factory adds later
-EXTRA_NETS = ("geometry_prior",)
+EXTRA_NETS = ("geometry_prior", "ao_prior")
 
 # The paper's loss weights (DESIGN.md); the configs repeat them so a run records what it used.
 PAPER_LOSS = {
     "geometry": {"l1": 5.0, "perceptual": 1.0, "angular": 1.0},
     "geometry_prior": {"l1": 5.0, "perceptual": 1.0, "angular": 1.0},
     "ao": {"l1": 5.0, "perceptual": 1.0},
+    "ao_prior": {"l1": 5.0, "perceptual": 1.0},
     "delight": {"l1": 500.0, "perceptual": 100.0, "light": 0.025},
     "body_refine": {"l1": 10.0, "adversarial": 1.0, "fft": 0.001},
     "face_refine": {"l1": 5.0, "adversarial": 1.0},

@@ -86,6 +86,8 @@ def fake_sample(rng: np.random.Generator, size: int = 32) -> dict[str, np.ndarra
         # 1-pixel rim of clothes, normals tilted toward +z, the surface a little behind
         "prior_mask": prior_mask, "prior_normal": prior_normal, "prior_back_normal": prior_back_normal,
         "prior_front_depth": (front_depth - 0.02) * prior_mask, "prior_back_depth": (back_depth + 0.02) * prior_mask,
+        # and its ray-traced AO (--prior-ao): a little more open than the clothed person's
+        "prior_ao": np.clip(ao + 0.05, 0.0, 1.0) * prior_mask,
     }
     return {k: np.asarray(v, dtype=np.float32) for k, v in arrays.items()}
 

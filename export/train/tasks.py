@@ -23,7 +23,7 @@ from export.train.losses import (angular_loss, fft_l1, gradient_l1, light_loss, 
 from relightcli import metrics
 from relightcli.compose import RATIO_DARK, anchor_albedo, ratio_albedo
 from relightcli.io.images import linear_to_srgb
-from relightcli.nets.geometry import prior_channels
+from relightcli.nets.geometry import ao_prior_channels, prior_channels
 from relightcli.nets.refine import shading_scale
 from relightcli.render.sh import irradiance_basis, project_sh, sh_irradiance_shading
 
@@ -182,6 +182,35 @@ class AOTask(Task):
 
     def metrics(self, out, example):
         return {"ao_mae": masked_mae(out["ao"][0], example["ao"][0], example["mask"][0])}
+
+
+class AOPriorTask(AOTask):
+    """(image, fitted bodies' prior maps and ray-traced AO) -> AO, with the AOTask's loss. The
+    prior is relightcli.nets.geometry.ao_prior_channels of the sample's "prior_*" arrays (the
+    runtime's own fit and AO, export.factory.coarse --prior-ao). Metrics add the MAE of the net
+    and of the bodies' AO alone on the pixels the bodies cover."""
+
+    family = "ao_prior"
+    input_keys = ("image", "prior")
+
+    def example(self, sample, rng):
+        if "prior_ao" not in sample:
+            raise ConfigError("the dataset has no prior AO: add it with "
+                              "`python -m export.factory.coarse DATA --prior-ao`")
+        prior = ao_prior_channels(prior_channels(sample["prior_mask"], sample["prior_normal"],
+                                                 sample["prior_back_normal"], sample["prior_front_depth"],
+                                                 sample["prior_back_depth"], sample["mask"].shape[0]),
+                                  sample["prior_ao"])
+        return dict(super().example(sample, rng), prior=chw(prior))
+
+    def metrics(self, out, example):
+        found = super().metrics(out, example)
+        body = example["prior"][9]
+        covered = example["mask"][0] * (example["prior"][8] > 0.5)
+        if covered.sum() > 0:
+            found["ao_mae_covered"] = masked_mae(out["ao"][0], example["ao"][0], covered)
+            found["body_ao_mae_covered"] = masked_mae(body, example["ao"][0], covered)
+        return found
 
 
 class DelightTask(Task):
@@ -402,7 +431,8 @@ class FaceRefineTask(GANTask):
                 "face_psnr_body": psnr_b, "face_psnr_gain_over_body": psnr_r - psnr_b}
 
 
-TASKS = {t.family: t for t in (GeometryTask, GeometryPriorTask, AOTask, DelightTask, BodyRefineTask, FaceRefineTask)}
+TASKS = {t.family: t for t in (GeometryTask, GeometryPriorTask, AOTask, AOPriorTask, DelightTask,
+                                BodyRefineTask, FaceRefineTask)}
 
 
 def make_task(config: TrainConfig) -> Task:

@@ -1,5 +1,6 @@
 """Geometry module at run time: `GeometryNet` (normals, depths, mask) and `AONet` (ambient
-occlusion), both from the person crop alone. Contracts: export/nets/geometry.py."""
+occlusion) from the person crop alone; `GeometryPriorNet` and `AOPriorNet` with a fitted body's
+maps as well. Contracts: export/nets/geometry.py."""
 
 from __future__ import annotations
 
@@ -118,3 +119,37 @@ class GeometryPriorNet(GeometryNet):
         padded, pad = pad_to_multiple(image, self.multiple, "reflect")
         prior_padded, _ = pad_to_multiple(prior, self.multiple, "zero")
         return self._maps(self.run({"image": hwc_to_nchw(padded), "prior": hwc_to_nchw(prior_padded)}), pad)
+
+
+def ao_prior_channels(prior: np.ndarray, body_ao: np.ndarray) -> np.ndarray:
+    """(side, side, 10) float32: `prior_channels` (side, side, 9) and the fitted bodies'
+    ray-traced AO (relightcli.stages.body_ao, any square resolution, zero where no fit
+    converged) resampled to the same side, as the AO prior net reads them. The data factory
+    (export/factory/coarse.py --prior-ao) and the runtime (stages.stage_ao) both call this."""
+    import cv2
+
+    side = prior.shape[0]
+    ao = np.asarray(body_ao, np.float32)
+    if ao.shape[0] != side:
+        interpolation = cv2.INTER_AREA if side < ao.shape[0] else cv2.INTER_LINEAR
+        ao = cv2.resize(ao, (side, side), interpolation=interpolation)
+    return np.concatenate([prior, np.clip(ao, 0.0, 1.0)[..., None]], axis=-1).astype(np.float32)
+
+
+class AOPriorNet(AONet):
+    """Person crop + the fitted bodies' maps and AO (ao_prior_channels) -> ambient occlusion:
+    the net learned the clothed person's AO as corrections of the bodies' where they cover the
+    crop, and from the image alone elsewhere."""
+
+    model_name = "ao_prior"
+    input_names = ("image", "prior")
+
+    def predict(self, image: np.ndarray, prior: np.ndarray) -> np.ndarray:
+        """image: (H, W, 3) float32 linear RGB in [0, 1]; prior: (H, W, 10) from
+        ao_prior_channels -> (H, W) float32 AO in [0, 1], 1 = open."""
+        check_hwc(image, 3, "image")
+        check_hwc(prior, len(PRIOR_CHANNELS) + 1, "prior")
+        padded, pad = pad_to_multiple(image, self.multiple, "reflect")
+        prior_padded, _ = pad_to_multiple(prior, self.multiple, "zero")
+        out = self.run({"image": hwc_to_nchw(padded), "prior": hwc_to_nchw(prior_padded)})
+        return crop_padding(nchw_to_hwc(out["ao"]), pad)[..., 0]

@@ -72,7 +72,7 @@ def test_export_declares_dynamic_hw(exported, family):
 def _runtime_predict(family, models_dir, h, w):
     """Run the family's runtime class on an odd-sized (h, w) person-like input."""
     from relightcli.nets.delight import DelightNet
-    from relightcli.nets.geometry import AONet, GeometryNet, GeometryPriorNet
+    from relightcli.nets.geometry import AONet, AOPriorNet, GeometryNet, GeometryPriorNet
     from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
 
     feeds = person_like_inputs(build_net(family, "small").io_contract(), h, w)
@@ -83,6 +83,8 @@ def _runtime_predict(family, models_dir, h, w):
         return GeometryPriorNet(models_dir=models_dir, threads=1).predict(hwc["image"], hwc["prior"]).front_normal
     if family == "ao":
         return AONet(models_dir=models_dir, threads=1).predict(hwc["image"])
+    if family == "ao_prior":
+        return AOPriorNet(models_dir=models_dir, threads=1).predict(hwc["image"], hwc["prior"])
     if family == "delight":
         return DelightNet(models_dir=models_dir, threads=1).predict(hwc["image"], hwc["normal"]).albedo
     if family == "body_refine":

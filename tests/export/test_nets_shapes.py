@@ -59,6 +59,24 @@ def test_ao_is_in_unit_range():
     assert ao.shape == (1, 1, 32, 32) and ((ao >= 0) & (ao <= 1)).all()
 
 
+def test_the_ao_prior_net_starts_from_the_bodies_ao():
+    torch.manual_seed(0)
+    net = build_net("ao_prior", "small")
+    ao, feeds = run(net, 32, 48)
+    prior = torch.from_numpy(feeds["prior"])
+    covered = prior[:, 8] > 0.99
+    assert ao.shape == (1, 1, 32, 48) and ((ao >= 0) & (ao <= 1)).all()
+    # untrained, the correction is small where the body covers: near the body's own AO
+    body = prior[:, 9].clamp(0.02, 0.98)
+    assert (ao[:, 0] - body).abs()[covered].mean() < 0.05
+    # and the body's AO matters: a darker one gives a darker map
+    darker = prior.clone()
+    darker[:, 9] *= 0.5
+    with torch.no_grad():
+        dimmed = net(torch.from_numpy(feeds["image"]), darker)
+    assert (dimmed - ao)[:, 0][covered].mean() < -0.1
+
+
 @pytest.mark.parametrize("size", ["small", "vanilla", "five_stage", "unet"])
 def test_delight_configs_give_albedo_and_16x32_light(size):
     torch.manual_seed(0)

@@ -156,6 +156,7 @@ def test_the_prior_maps_are_the_runtimes_own():
     from relightcli.io.images import read_image
     from relightcli.nets.geometry import prior_channels
     from relightcli.pipeline import RelightOptions, run_stages
+    from relightcli.stages import body_ao, body_shading_pixels
 
     data = Path(__file__).resolve().parents[1] / "data"
     photo = read_image(data / "tpose_render.png").rgb
@@ -178,6 +179,13 @@ def test_the_prior_maps_are_the_runtimes_own():
                            arrays["prior_front_depth"], arrays["prior_back_depth"], 128)
     assert prior.shape == (128, 128, 9) and np.isfinite(prior).all()
     assert (prior[..., 8] > 0.5).mean() > 0.1
+    # --prior-ao: the same maps, and the bodies' AO as the runtime traces it
+    with_ao, _ = coarse.prior_ao_arrays({"input": image, "mask": mask}, {}, Models(threads=1))
+    assert all(np.array_equal(with_ao[key], arrays[key]) for key in arrays)
+    traced = body_ao(frame, options.seed) * body_shading_pixels(frame)
+    assert np.array_equal(with_ao["prior_ao"], traced)
+    person = mask > 0.5
+    assert 0.5 < with_ao["prior_ao"][person].mean() < 1.0  # open on the whole, darker in places
 
 
 def test_a_sample_without_a_person_found_gets_empty_priors():
@@ -186,3 +194,5 @@ def test_a_sample_without_a_person_found_gets_empty_priors():
     assert stats["people"] == 0 and stats["converged"] == 0
     assert not arrays["prior_mask"].any() and not arrays["prior_normal"].any()
     assert arrays["prior_normal"].shape == (64, 64, 3)
+    arrays, _ = coarse.prior_ao_arrays(sample, {}, Models(threads=1))
+    assert arrays["prior_ao"].shape == (64, 64) and not arrays["prior_ao"].any()

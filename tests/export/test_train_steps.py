@@ -29,7 +29,8 @@ def small_config(net, **extra):
     return TrainConfig(net=net, size="small", seed=0, steps=4, **{**OVERRIDES, **extra})
 
 
-@pytest.mark.parametrize("net", ["geometry", "geometry_prior", "ao", "delight", "body_refine", "face_refine"])
+@pytest.mark.parametrize("net", ["geometry", "geometry_prior", "ao", "ao_prior", "delight", "body_refine",
+                                 "face_refine"])
 def test_a_few_steps_lower_the_loss(net, dataset, tmp_path):
     trainer = Trainer(small_config(net), dataset, tmp_path)
     batch = trainer.next_batch()
@@ -39,10 +40,10 @@ def test_a_few_steps_lower_the_loss(net, dataset, tmp_path):
     assert last < 0.9 * first
 
 
-@pytest.mark.parametrize("net", ["body_refine", "geometry_prior"])
+@pytest.mark.parametrize("net", ["body_refine", "geometry_prior", "ao_prior"])
 def test_resume_continues_bit_exactly(net, dataset, tmp_path):
     # body_refine: net + discriminator + two optimisers + the stand-in noise;
-    # geometry_prior: two inputs, the prior maps flipped with the image
+    # geometry_prior, ao_prior: two inputs, the prior maps flipped with the image
     straight = Trainer(small_config(net), dataset, tmp_path / "a")
     straight.run(steps=4, validate=False)
     Trainer(small_config(net), dataset, tmp_path / "b").run(steps=2, validate=False)
