@@ -2,7 +2,9 @@
 trains on the shading it will refine: `python -m export.factory.coarse DATA [--splits ...]`.
 
 Per sample, with the shipped nets (relightcli.stages, the true person mask, the whole sample
-as the working crop): geometry net -> reconstruction + smoothing -> ray-traced coarse shading
+as the working crop): people -> body fit -> body maps -> geometry net (the prior net where a
+fit converged) -> reconstruction + smoothing -> ray-traced coarse shading (blended with the
+fitted bodies' where a fit converged)
 under lighting B at the runtime's default sampling effort ("coarse_shading_b", the same units
 and exposure as "shading_b"), the AO net's map ("ao_pred") and the geometry net's normals
 ("normal_pred", what the runtime feeds the de-lighting net). The models' sha256 go into the
@@ -17,6 +19,7 @@ the fitted bodies' maps again with their ray-traced AO ("prior_ao").
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import sys
 import time
@@ -30,7 +33,8 @@ from . import dataset
 from .eval_scenes import target_environment
 
 # product (metadata key) -> the models it is made with
-MODELS_USED = {"coarse": ("geometry", "ao"), "normals": ("geometry",),
+MODELS_USED = {"coarse": ("person_detector", "pose_landmarks", "body_model", "geometry", "geometry_prior", "ao"),
+               "normals": ("geometry",),
                "priors": ("person_detector", "pose_landmarks", "body_model"),
                "prior_ao": ("person_detector", "pose_landmarks", "body_model")}
 
@@ -60,14 +64,23 @@ def working_frame(sample: dict, meta: dict | None):
     return frame, options
 
 
-def coarse_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
-    """({"coarse_shading_b", "ao_pred", "normal_pred"}, statistics) of one loaded sample."""
-    from relightcli.stages import stage_ao, stage_geometry, stage_raytrace, stage_reconstruct
+def coarse_arrays(sample: dict, meta: dict, models, bodies: bool = True) -> tuple[dict, dict]:
+    """({"coarse_shading_b", "ao_pred", "normal_pred"}, statistics) of one loaded sample, by the
+    runtime's chain: with `bodies`, people -> body fit -> body maps first, so where a fit
+    converges the geometry comes from the prior net and the coarse shading is the blend with
+    the bodies' (as `relight` makes it); without, the image-alone path."""
+    from relightcli.stages import (stage_ao, stage_body, stage_body_maps, stage_geometry, stage_people,
+                                   stage_raytrace, stage_reconstruct)
 
     frame, options = working_frame(sample, meta)
-    for stage in (stage_geometry, stage_ao, stage_reconstruct, stage_raytrace):
-        stage(frame, options, models)
-    frame.scene.close()
+    chain = (stage_people, stage_body, stage_body_maps) if bodies else ()
+    try:
+        for stage in chain + (stage_geometry, stage_ao, stage_reconstruct, stage_raytrace):
+            stage(frame, options, models)
+    finally:
+        for scene in (frame.scene, frame.body_scene):
+            if scene is not None:
+                scene.close()
     return ({"coarse_shading_b": frame.coarse_shading, "ao_pred": frame.ao, "normal_pred": frame.normal},
             {key: frame.notes["raytrace"][key] for key in ("spp_mean", "rel_error", "seconds")})
 
@@ -164,7 +177,10 @@ def run(root, splits=dataset.SPLITS, workers: int = 1, limit: int | None = None,
     todo = pending(root, splits, record, product)[:limit]
     print(f"{len(todo)} samples to do", file=sys.stderr)
     start, done = time.perf_counter(), 0
-    with ProcessPoolExecutor(workers, initializer=_worker_init) as pool:
+    # spawned, not forked: a child forked from a process whose OpenCV or ONNX Runtime thread
+    # pools already ran can deadlock in them (the body fit's OpenCV calls did, under pytest)
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init) as pool:
         futures = [pool.submit(_one, str(root), split, sample_id, record, product) for split, sample_id in todo]
         for future in as_completed(futures):
             future.result()
