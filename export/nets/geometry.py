@@ -131,6 +131,15 @@ class GeometryNet(nn.Module):
         )
 
 
+def near_zero(head: nn.Conv2d) -> nn.Conv2d:
+    """`head` with its initial weights scaled by 0.1 and no bias: a prior net's corrections
+    start small, so it starts from the prior."""
+    with torch.no_grad():
+        head.weight.mul_(0.1)
+        head.bias.zero_()
+    return head
+
+
 def inverse_softplus(y: torch.Tensor) -> torch.Tensor:
     """x with softplus(x) = y, for y > 0 (written with log and exp: ONNX has no expm1)."""
     return y + torch.log(1.0 - torch.exp(-y))
@@ -153,10 +162,7 @@ class GeometryPriorNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.backbone = UNetBackbone(3 + self.prior_channels, cfg)
-        self.head = nn.Conv2d(cfg.width, 9, 7, padding=3)
-        with torch.no_grad():  # start near the prior
-            self.head.weight.mul_(0.1)
-            self.head.bias.zero_()
+        self.head = near_zero(nn.Conv2d(cfg.width, 9, 7, padding=3))  # start near the prior
 
     def forward(self, image: torch.Tensor, prior: torch.Tensor):
         h = self.head(self.backbone(torch.cat([encode_display(image), prior], dim=1))[0])
@@ -223,10 +229,7 @@ class AOPriorNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.backbone = UNetBackbone(3 + self.prior_channels, cfg)
-        self.head = nn.Conv2d(cfg.width, 1, 7, padding=3)
-        with torch.no_grad():  # start near the prior
-            self.head.weight.mul_(0.1)
-            self.head.bias.zero_()
+        self.head = near_zero(nn.Conv2d(cfg.width, 1, 7, padding=3))  # start near the prior
 
     def forward(self, image: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
         h = self.head(self.backbone(torch.cat([encode_display(image), prior], dim=1))[0])

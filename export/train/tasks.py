@@ -137,6 +137,12 @@ class GeometryTask(Task):
         }
 
 
+def sample_prior(sample: dict) -> np.ndarray:
+    """relightcli.nets.geometry.prior_channels of a sample's "prior_*" maps, at its side."""
+    return prior_channels(sample["prior_mask"], sample["prior_normal"], sample["prior_back_normal"],
+                          sample["prior_front_depth"], sample["prior_back_depth"], sample["mask"].shape[0])
+
+
 class GeometryPriorTask(GeometryTask):
     """(image, fitted body's prior maps) -> the geometry maps, with the GeometryTask's loss.
     The prior is relightcli.nets.geometry.prior_channels of the sample's "prior_*" arrays (the
@@ -150,10 +156,7 @@ class GeometryPriorTask(GeometryTask):
         if "prior_mask" not in sample:
             raise ConfigError("the dataset has no prior maps: add them with "
                               "`python -m export.factory.coarse DATA --priors`")
-        example = super().example(sample, rng)
-        prior = prior_channels(sample["prior_mask"], sample["prior_normal"], sample["prior_back_normal"],
-                               sample["prior_front_depth"], sample["prior_back_depth"], sample["mask"].shape[0])
-        return dict(example, prior=chw(prior))
+        return dict(super().example(sample, rng), prior=chw(sample_prior(sample)))
 
     def metrics(self, out, example):
         found = super().metrics(out, example)
@@ -197,10 +200,7 @@ class AOPriorTask(AOTask):
         if "prior_ao" not in sample:
             raise ConfigError("the dataset has no prior AO: add it with "
                               "`python -m export.factory.coarse DATA --prior-ao`")
-        prior = ao_prior_channels(prior_channels(sample["prior_mask"], sample["prior_normal"],
-                                                 sample["prior_back_normal"], sample["prior_front_depth"],
-                                                 sample["prior_back_depth"], sample["mask"].shape[0]),
-                                  sample["prior_ao"])
+        prior = ao_prior_channels(sample_prior(sample), sample["prior_ao"])
         return dict(super().example(sample, rng), prior=chw(prior))
 
     def metrics(self, out, example):
