@@ -331,8 +331,8 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
 # Where a body fit converged and the AO prior net is not in the models folder, the AO layer
 # blends the net's map with the fitted bodies' own AO, ray-traced (BODY_AO_SPP samples at every
 # other pixel of every other row, then upsampled: AO is smooth), the bodies' share
-# BODY_AO_WEIGHT. (The AO prior net, shipped, beat it: models/MODEL_CARD.md.) AO MAE over the person (python
-# bench/bench_ao.py DATA --split S --weights 0,0.5,0.7,1): the 20 validation renders at 512
+# BODY_AO_WEIGHT (the AO prior net, shipped, beats the blend: models/MODEL_CARD.md). AO MAE
+# over the person (python bench/bench_ao.py DATA --split S --weights 0,0.5,0.7,1): the 20 validation renders at 512
 # (16 fitted) 0.0642 (net), 0.0564, 0.0554, 0.0566 (bodies alone): 0.7 chosen; the 20 test
 # renders (20 fitted) 0.0844 -> 0.0833. The refinement net keeps reading the net's map, which
 # it was trained on: fed the blend it lost 0.08 dB of shading on validation (true mask, relit /
