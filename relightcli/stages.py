@@ -332,11 +332,11 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
 # blends the net's map with the fitted bodies' own AO, ray-traced (BODY_AO_SPP samples at every
 # other pixel of every other row, then upsampled: AO is smooth), the bodies' share
 # BODY_AO_WEIGHT (the AO prior net, shipped, beats the blend: models/MODEL_CARD.md). AO MAE
-# over the person (python bench/bench_ao.py DATA --split S --weights 0,0.5,0.7,1): the 20 validation renders at 512
-# (16 fitted) 0.0642 (net), 0.0564, 0.0554, 0.0566 (bodies alone): 0.7 chosen; the 20 test
-# renders (20 fitted) 0.0844 -> 0.0833. The refinement net keeps reading the net's map, which
-# it was trained on: fed the blend it lost 0.08 dB of shading on validation (true mask, relit /
-# shading 16.63 / 19.80 -> 16.58 / 19.72).
+# over the person (python bench/bench_ao.py DATA --split S --weights 0,0.5,0.7,1): the 20
+# validation renders at 512 (16 fitted) 0.0642 (net), 0.0564, 0.0554, 0.0566 (bodies alone):
+# 0.7 chosen; the 20 test renders (20 fitted) 0.0844 -> 0.0833. The refinement net keeps
+# reading the net's map, which it was trained on: fed the blend it lost 0.08 dB of shading on
+# validation (true mask, relit / shading 16.63 / 19.80 -> 16.58 / 19.72).
 BODY_AO_WEIGHT = 0.7
 BODY_AO_SPP = 32
 
