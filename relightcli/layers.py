@@ -13,6 +13,13 @@ from dataclasses import dataclass
 # tracing for a 512 crop. `--target-error` / `--spp` ask for more.
 DEFAULT_TARGET_ERROR, DEFAULT_SPP_CAP = 0.04, 32
 
+# Where rays for cast shadows and occlusion are traced (stages.traced): "half" every second
+# pixel of the crop in both directions, the visibility found there applied to every pixel's
+# own unoccluded shading (the eval scores within 0.07 dB of "full", at 0.4x the time); "full"
+# every pixel.
+SHADOW_STEP = {"half": 2, "full": 1}
+DEFAULT_SHADOWS = "half"
+
 # Default working resolution: the paper's 512-pixel person crop, although the shipped nets
 # trained on 256-pixel crops. Measured on 20 test scenes rendered at 512 (true mask, no
 # refinement): relit 15.32 vs 15.25 dB at a 256 crop, albedo 15.96 vs 15.75, shading 16.80 vs

@@ -16,7 +16,7 @@ import numpy as np
 
 from relightcli.batch import Item, ItemReport
 from relightcli.errors import InputError
-from relightcli.layers import DEFAULT_RESOLUTION
+from relightcli.layers import DEFAULT_RESOLUTION, DEFAULT_SHADOWS
 
 # A person needs some pixels: below this side length nothing meaningful can be estimated.
 MIN_SIDE = 32
@@ -73,6 +73,7 @@ class RelightOptions:
     exposure_ev: float = 0.0
     spp: int | None = None
     target_error: float | None = None
+    shadows: str = DEFAULT_SHADOWS  # layers.SHADOW_STEP
     seed: int = 0
     threads: int = 1
     background: str = "keep"

@@ -19,7 +19,7 @@ from relightcli import compose
 from relightcli.io.envmap import environment_view
 from relightcli.io.images import row_bands
 from relightcli.errors import RelightError, RelightWarning
-from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR
+from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, SHADOW_STEP
 
 
 @dataclass
@@ -656,25 +656,22 @@ def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
     """(shading (R, R, 3), note): the reconstruction ray-traced under `light` (an
     EnvironmentLight), blended with the fitted bodies' (body_weight) where a fit converged;
     person pixels a mesh does not cover, the mask's soft edge included, take their nearest
-    covered pixel's shading (stage_raytrace)."""
-    from relightcli.render.integrator import shade_environment
-
+    covered pixel's shading (stage_raytrace). `--shadows half` traces every second pixel's rays
+    (traced)."""
     spp, target = sampling_effort(options)
     wanted = frame.crop_mask > 0
     blended = frame.body_scene is not None
     own_target, body_target = blend_targets(target, BODY_SHADING_WEIGHT, body_shading_pixels(frame).all()) \
         if blended and target is not None else (target, target)
-    result = shade_environment(frame.scene, frame.hits, light, spp=spp, target_error=own_target,
-                               seed=options.seed, workers=options.threads)
-    # means and errors filled together: one distance transform per render
-    own = fill_uncovered(np.concatenate([result.mean, result.stderr], axis=-1), frame.hits.mask, wanted)
-    shading, note = np.ascontiguousarray(own[..., :3]), _trace_note(result)
+    step = SHADOW_STEP[options.shadows]
+    own, result = traced(frame.scene, frame.hits, light, spp, own_target, options.seed, options.threads,
+                         wanted, step)
+    shading, note = np.ascontiguousarray(own[..., :3]), {**_trace_note(result), "shadow_step": step}
     if not blended:
         note["body"] = "no converged body fit: the reconstruction's shading alone"
         return shading, note
-    body = shade_environment(frame.body_scene, frame.body_hits, light, spp=spp, target_error=body_target,
-                             seed=options.seed, workers=options.threads)
-    body_filled = fill_uncovered(np.concatenate([body.mean, body.stderr], axis=-1), frame.body_hits.mask, wanted)
+    body_filled, body = traced(frame.body_scene, frame.body_hits, light, spp, body_target, options.seed,
+                               options.threads, wanted, step)
     weight = body_weight(frame)[..., None]
     note["body"] = {"weight": BODY_SHADING_WEIGHT, **_trace_note(body)}
     mean = (1.0 - weight) * shading + weight * body_filled[..., :3]
@@ -683,6 +680,61 @@ def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
     note["reconstruction_rel_error"] = note["rel_error"]
     note["rel_error"] = median_relative_error(mean, stderr, wanted & frame.hits.mask)
     return mean, note
+
+
+def traced(scene, hits, light, spp, target, seed, threads, wanted, step) -> tuple[np.ndarray, object]:
+    """(mean and standard error (R, R, 6) float32 over the pixels `wanted`, the integrator's
+    ShadingResult) of the camera's hits on a scene under `light` (an EnvironmentLight).
+
+    step 1: every hit is ray-traced. step > 1: only every step-th pixel's in both directions
+    (a 1 / step^2 share of the rays), and what the rays found there, the visibility V = traced
+    / unoccluded shading (cast shadows and occlusion: 1 where nothing blocks the light), is
+    interpolated to every pixel and multiplied by that pixel's own unoccluded shading, exact
+    from the light's irradiance table (the integrator's control variate) at its own normal: the
+    normals' detail stays at full resolution, only shadows and occlusion come at the coarse
+    grid's. The error reported is the coarse render's Monte Carlo error carried the same way.
+    Person pixels no hit covers take the nearest covered pixel's values (fill_uncovered).
+
+    Measured at step 2 (`relight eval DATA --use-gt-mask`, relit / shading dB, against step
+    1): validation 16.68 / 20.08 (16.70 / 20.15), test 18.13 / 18.88 (18.12 / 18.89); the
+    shading's SSIM 0.747 / 0.653 (0.743 / 0.649). The ray tracing stage at 512 took 0.3 s
+    instead of 0.75 s; the same visibility upsampled without the ratio (the coarse shading
+    itself interpolated) lost 0.2 dB of shading on validation."""
+    from relightcli.render.integrator import shade_environment
+
+    coarse = hits.subsampled(step)
+    result = shade_environment(scene, coarse, light, spp=spp, target_error=target, seed=seed, workers=threads)
+    values = np.concatenate([result.mean, result.stderr], axis=-1)
+    if step == 1:
+        # means and errors filled together: one distance transform per render
+        return fill_uncovered(values, hits.mask, wanted), result
+    unoccluded = np.zeros(coarse.mask.shape + (3,))
+    unoccluded[coarse.mask] = light.irradiance(coarse.normal[coarse.mask])
+    floor = max(1e-9 * float(unoccluded.max()), 1e-30)
+    dark = unoccluded <= floor
+    ratio = np.concatenate([np.where(dark, 1.0, result.mean / np.where(dark, 1.0, unoccluded)),
+                            np.where(dark, 0.0, result.stderr / np.where(dark, 1.0, unoccluded))], axis=-1)
+    ratio = fill_uncovered(ratio, coarse.mask, np.ones(coarse.mask.shape, bool))
+    full = np.zeros(hits.mask.shape + (3,), np.float32)
+    full[hits.mask] = light.irradiance(hits.normal[hits.mask])
+    values = upsample(ratio.astype(np.float32), hits.mask.shape, step) * np.concatenate([full, full], axis=-1)
+    return fill_uncovered(values, hits.mask, wanted), result
+
+
+def upsample(image: np.ndarray, shape: tuple, step: int) -> np.ndarray:
+    """(H, W, C) bilinear from a coarse image (h, w, C) whose pixel (i, j) lies on pixel
+    (step i, step j) of the fine one (PixelGeometry.subsampled); held beyond its last row and
+    column."""
+    def axis(n, coarse):
+        at = np.arange(n) / step
+        low = np.minimum(at.astype(np.int64), coarse - 1)
+        high = np.minimum(low + 1, coarse - 1)
+        return low, high, np.clip(at - low, 0.0, 1.0).astype(np.float32)[:, None]
+
+    r0, r1, fr = axis(shape[0], image.shape[0])
+    c0, c1, fc = axis(shape[1], image.shape[1])
+    rows = image[r0] * (1.0 - fr[..., None]) + image[r1] * fr[..., None]
+    return rows[:, c0] * (1.0 - fc) + rows[:, c1] * fc
 
 
 def blend_targets(target: float, weight: float, everywhere: bool) -> tuple[float, float]:

@@ -343,14 +343,33 @@ PLATE_FACES = np.array([[r * 4 + c, r * 4 + c + 1, (r + 1) * 4 + c + 1] for r in
                        np.int32)
 
 
-def _ball_frame(models, resolution=48):
+def _ball_frame(models, resolution=48, shadows="half"):
     """The stand-in ball reconstructed and ray-traced under a constant environment 1.5."""
     image = np.full((64, 64, 3), 0.3, np.float32)
     mask = np.zeros((64, 64), np.float32)
     mask[8:56, 8:56] = 1.0
-    options = RelightOptions(outputs=("shading",), method="raytrace-norefine", resolution=resolution, spp=8)
+    options = RelightOptions(outputs=("shading",), method="raytrace-norefine", resolution=resolution, spp=8,
+                             shadows=shadows)
     frame, _ = run_stages(image, mask, np.full((8, 16, 3), 1.5, np.float32), options, ItemReport("x"), models)
     return frame, options
+
+
+def test_shadows_are_traced_on_every_second_pixel_unless_asked_for_every_pixel():
+    half, _ = _ball_frame(SphereModels(), resolution=64)
+    full, _ = _ball_frame(SphereModels(), resolution=64, shadows="full")
+    assert (half.notes["raytrace"]["shadow_step"], full.notes["raytrace"]["shadow_step"]) == (2, 1)
+    assert half.notes["raytrace"]["rays"] < 0.35 * full.notes["raytrace"]["rays"]
+    inside = half.crop_mask > 0.5
+    assert np.isfinite(half.coarse_shading).all()
+    # The ball's top sees the whole sky either way (exact), the rim is shadowed by the slab:
+    # 8 samples per pixel, so the two agree on average, not pixel by pixel
+    assert half.coarse_shading[inside].max() <= 1.5 * (1 + 1e-4)
+    assert half.coarse_shading[inside].mean() == pytest.approx(full.coarse_shading[inside].mean(), rel=0.02)
+    centres = -1.0 + (np.arange(64) + 0.5) * 2.0 / 64
+    x, y = np.meshgrid(centres, -centres)
+    rim = inside & (np.hypot(x, y) > 0.45) & (np.hypot(x, y) < 0.58)
+    assert half.coarse_shading[rim].mean() == pytest.approx(full.coarse_shading[rim].mean(), rel=0.03)
+    assert full.coarse_shading[rim].mean() < 1.45
 
 
 def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction():

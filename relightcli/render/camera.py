@@ -46,6 +46,22 @@ class PixelGeometry:
         use = where & self.mask & (length[..., 0] > 0) & (np.sum(n * self.geometric_normal, axis=-1) > 0)
         return replace(self, normal=np.where(use[..., None], n, self.normal).astype(np.float32))
 
+    def subsampled(self, step: int) -> "PixelGeometry":
+        """Every step-th pixel's hit in both directions, starting at pixel (0, 0): pixel (i, j)
+        of the result is pixel (step i, step j) of this image, and the result's rectangle puts
+        its pixel centres where theirs are."""
+        if step == 1:
+            return self
+        x0, x1, y0, y1 = self.rect
+        height, width = self.mask.shape
+        rows, cols = -(-height // step), -(-width // step)
+        dx, dy = (x1 - x0) / width, (y1 - y0) / height
+        left, top = x0 - 0.5 * dx * (step - 1), y1 + 0.5 * dy * (step - 1)
+        every = np.s_[::step, ::step]
+        return PixelGeometry(mask=self.mask[every], position=self.position[every],
+                             normal=self.normal[every], geometric_normal=self.geometric_normal[every],
+                             rect=(left, left + cols * step * dx, top - rows * step * dy, top))
+
 
 def pixel_centres(rect, resolution):
     """World (x, y) of the pixel centres. rect (x0, x1, y0, y1), resolution (W, H).
