@@ -70,7 +70,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                         help="albedo: 'ratio' (default) divides the photo by the SH-9 shading of the "
                              "de-lighting net's light at the predicted normals; 'solve' solves the input "
                              "light by inverse rendering on the mesh and divides by its ray-traced shading "
-                             "(cast shadows included; ~1.0 s more at 512); 'net' keeps the de-lighting "
+                             "(cast shadows included; ~0.8 s more at 512); 'net' keeps the de-lighting "
                              "net's own albedo (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=spp_value, metavar="N",
@@ -82,7 +82,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where rays are traced for cast shadows and occlusion: 'half' (default) "
                              "every second pixel of the crop, the visibility they find applied to "
                              "every pixel's own shading (normals keep full detail; the ray tracing "
-                             "takes ~0.4x the time, the eval scores the same); 'full' every pixel")
+                             "takes ~0.6x the time, the eval scores the same); 'full' every pixel")
     parser.add_argument("--seed", type=seed_value, default=0,
                         help="random seed >= 0 (an item's outputs depend on its input, the options and the seed only)")
     low, high = RESOLUTION_RANGE
