@@ -30,7 +30,8 @@ HDR = REPO / "examples" / "noon_grass.hdr"
 
 
 def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
-                photo=EXAMPLE, mask_path=MASK, hdr=HDR, predict_mask: bool = False, albedo: str = "ratio") -> dict:
+                photo=EXAMPLE, mask_path=MASK, hdr=HDR, predict_mask: bool = False, albedo: str = "ratio",
+                shadows: str = "half") -> dict:
     from relightcli.batch import ItemReport
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
@@ -41,7 +42,7 @@ def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
     mask = None if predict_mask else read_image(mask_path, srgb=False).rgb[..., 0]
     env = load_envmap(hdr)
     options = RelightOptions(outputs=("relit",), resolution=resolution, threads=threads, spp=spp,
-                             target_error=target_error, albedo=albedo)
+                             target_error=target_error, albedo=albedo, shadows=shadows)
     models = Models(threads)
     run_stages(image.rgb, mask, env, options, ItemReport("warm-up"), models)  # load sessions once
     rows = []
@@ -126,6 +127,8 @@ def main() -> None:
                         help="leave the mask out: time finding the people and their mask too")
     parser.add_argument("--albedo", default="ratio", choices=("ratio", "solve", "net"),
                         help="the albedo source (solve: the light by inverse rendering, ~1 s more)")
+    parser.add_argument("--shadows", default="half", choices=("half", "full"),
+                        help="where shadow rays are traced (relight --shadows)")
     parser.add_argument("--people", type=int, default=None, metavar="N",
                         help="the example N times side by side (mirrored every other time), no mask: "
                              "the time for N people in one photo")
@@ -139,7 +142,7 @@ def main() -> None:
     result = {"resolution": resolution, "threads": args.threads, "cpu": os.cpu_count(),
               "median_seconds": stage_times(args.runs, resolution, args.threads, args.spp, args.target_error,
                                             photo, mask, hdr, predict_mask=args.predict_mask,
-                                            albedo=args.albedo)}
+                                            albedo=args.albedo, shadows=args.shadows)}
     if args.memory:
         result["memory"] = peak_memory_24mp(resolution, args.threads, args.spp, args.predict_mask)
     print(f"median over {args.runs} runs, {resolution}x{resolution} crop, {args.threads} threads")
@@ -148,7 +151,8 @@ def main() -> None:
     if "memory" in result:
         print(f"24 MP photo: peak RSS {result['memory']['peak_rss_mb']:.0f} MB, {result['memory']['seconds']:.1f} s")
     suffix = ((f"_{args.scene.name}" if args.scene else "") + (f"_{args.people}_people" if args.people else "")
-              + ("_predicted_mask" if args.predict_mask else "") + ("" if args.albedo == "ratio" else f"_{args.albedo}"))
+              + ("_predicted_mask" if args.predict_mask else "") + ("" if args.albedo == "ratio" else f"_{args.albedo}")
+              + ("" if args.shadows == "half" else f"_shadows_{args.shadows}"))
     out = REPO / "bench" / "results" / f"pipeline_{resolution}{suffix}.json"
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")
