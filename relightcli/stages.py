@@ -726,11 +726,11 @@ def traced(scene, hits, light, spp, target, seed, threads, wanted, step) -> tupl
     grid's. The error reported is the coarse render's Monte Carlo error carried the same way.
     Person pixels no hit covers take the nearest covered pixel's values (fill_uncovered).
 
-    Measured at step 2 (`relight eval DATA --use-gt-mask`, relit / shading dB, against step
-    1): validation 16.68 / 20.08 (16.70 / 20.15), test 18.13 / 18.88 (18.12 / 18.89); the
-    shading's SSIM 0.747 / 0.653 (0.743 / 0.649). The ray tracing stage at 512 took 0.3 s
-    instead of 0.75 s; the same visibility upsampled without the ratio (the coarse shading
-    itself interpolated) lost 0.2 dB of shading on validation."""
+    Measured at step 2 (`relight eval DATA --use-gt-mask [--shadows full]`, relit / shading
+    dB, against step 1): validation 16.81 / 20.43 (16.82 / 20.45), test 18.06 / 19.00 (18.05 /
+    19.00); the shading's SSIM 0.756 / 0.658 (0.752 / 0.654). The ray tracing stage at 512
+    0.40 s instead of 0.74 s (`python bench/bench_pipeline.py [--shadows full]`). The coarse
+    shading itself interpolated, without the ratio, lost 0.2 dB of shading on validation."""
     from relightcli.render.integrator import shade_environment
 
     coarse = hits.subsampled(step)
