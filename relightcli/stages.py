@@ -404,7 +404,7 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     again by inverse rendering on the mesh (solve_input_light) and divides the crop by the
     ray-traced shading of that light (cast shadows and occlusion leave the albedo with it);
     both blend into the net's albedo where that shading is too dark to divide by
-    (compose.ratio_albedo), take the net's albedo level per channel and its albedo on the
+    (compose.ratio_albedo), take the net's albedo level (one gain) and its albedo on the
     outline (compose.anchor_albedo). `--albedo net` keeps the net's (the paper's).
 
     Measured at 512 (`--method raytrace-norefine` on the 20 validation scenes, true mask;

@@ -221,16 +221,16 @@ def test_ratio_albedo_falls_back_where_the_shading_is_dark_and_stays_finite():
     assert ratio_albedo(np.full_like(image, 0.9), np.full_like(image, 0.5), fallback, np.ones((8, 8))).max() == 1.0
 
 
-def test_anchor_albedo_takes_the_level_from_the_net_and_the_detail_from_the_ratio():
+def test_anchor_albedo_takes_the_level_from_the_net_and_the_detail_and_colour_from_the_ratio():
     rng = np.random.default_rng(1)
-    albedo = rng.uniform(0.05, 0.6, (24, 24, 3)).astype(np.float32)
-    ratio = albedo * np.array([0.5, 0.8, 1.2], np.float32)  # the light's intensity and colour were off
+    albedo = rng.uniform(0.05, 0.6, (24, 24, 3)).astype(np.float32) * np.array([0.3, 1.0, 0.2], np.float32)
+    ratio = albedo * np.float32(0.5)  # the light's intensity was off
     mask = np.zeros((24, 24), np.float32)
     mask[4:20, 4:20] = 1.0
-    inside = albedo[4:20, 4:20].reshape(-1, 3).mean(axis=0)
-    net = np.broadcast_to(inside, albedo.shape).astype(np.float32)  # flat, at the right level
+    level = albedo[4:20, 4:20].mean()
+    net = np.full(albedo.shape, level, np.float32)  # grey, flat, at the right level
     got = anchor_albedo(ratio, net, mask, ring=0)
-    np.testing.assert_allclose(got, albedo, rtol=1e-5)
+    np.testing.assert_allclose(got, albedo, rtol=1e-5)  # the green stays green
     # The outline ring (1 px) is the net's; the core keeps the ratio's detail
     got = anchor_albedo(ratio, net, mask, ring=1)
     np.testing.assert_array_equal(got[4, 4:20], net[4, 4:20])
