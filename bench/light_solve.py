@@ -51,16 +51,20 @@ def light_errors(estimate: np.ndarray, truth: np.ndarray) -> dict:
 
 
 def albedo_metrics(frame, scene) -> dict:
-    """Albedo and relit PSNR as is and with the oracle per-channel albedo gain."""
+    """Albedo and relit PSNR as is, with the oracle per-channel albedo gain (level and colour)
+    and with the oracle level alone (one gain for the three channels)."""
     height, width = frame.image.shape[:2]
     albedo = compose.paste_back(frame.albedo, frame.box, height, width)
     relit = frame.relit
     inside = scene.mask > 0.5
     gain = scene.albedo[inside].mean(axis=0) / np.maximum(albedo[inside].mean(axis=0), 1e-6)
+    level = scene.albedo[inside].mean() / max(float(albedo[inside].mean()), 1e-6)
     psnr = lambda pred, gt: layer_metrics(pred, gt, scene.mask)["psnr"]  # noqa: E731
     return {"albedo": psnr(albedo, scene.albedo), "relit": psnr(relit, scene.relit),
             "albedo_oracle_gain": psnr(albedo * gain, scene.albedo),
-            "relit_oracle_gain": psnr(relit * gain, scene.relit)}
+            "relit_oracle_gain": psnr(relit * gain, scene.relit),
+            "albedo_oracle_level": psnr(albedo * level, scene.albedo),
+            "relit_oracle_level": psnr(relit * level, scene.relit)}
 
 
 def measure(folder: Path, truth, source: str, use_gt_mask: bool, models) -> dict:
@@ -95,6 +99,7 @@ def main() -> int:
         print(folder.name, {s: {k: round(v, 3) for k, v in rows[s][-1].items() if isinstance(v, float)}
                             for s in SOURCES}, flush=True)
     keys = ("log_l2", "level", "correlation", "albedo", "relit", "albedo_oracle_gain", "relit_oracle_gain",
+            "albedo_oracle_level", "relit_oracle_level",
             "delight_seconds")
     summary = {source: {k: float(np.mean([r[k] for r in rs if "error" not in r])) for k in keys}
                for source, rs in rows.items()}

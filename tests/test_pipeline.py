@@ -611,3 +611,22 @@ def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one(
     assert frame.geometry.front_normal.shape == (32, 32, 3) and frame.ao.shape == (32, 32)
     np.testing.assert_allclose(np.linalg.norm(frame.geometry.front_normal, axis=-1), 1.0, rtol=1e-5)
     assert frame.albedo.shape == (32, 32, 3)
+
+
+def test_the_solved_light_takes_the_nets_colour_and_keeps_its_own_shape_and_luminance():
+    from relightcli.compose import LUMINANCE
+    from relightcli.stages import net_colour
+
+    rng = np.random.default_rng(0)
+    shape = rng.uniform(0.1, 2.0, (16, 32, 1)).astype(np.float32)
+    solved = shape * np.array([0.4, 1.0, 0.3], np.float32)  # a green cast from a green outfit
+    net = rng.uniform(0.5, 1.5, (16, 32, 1)).astype(np.float32) * np.array([1.0, 0.9, 0.8], np.float32)
+    got = net_colour(solved, net)
+    colour = got.reshape(-1, 3).mean(axis=0)
+    np.testing.assert_allclose(colour / colour.sum(), np.array([1.0, 0.9, 0.8]) / 2.7, rtol=1e-5)
+    np.testing.assert_allclose(got[..., 1] / got[..., 0], 0.9, rtol=1e-5)  # the solve's shape
+    np.testing.assert_allclose(got.reshape(-1, 3).mean(axis=0) @ LUMINANCE,
+                               solved.reshape(-1, 3).mean(axis=0) @ LUMINANCE, rtol=1e-5)
+    black = np.zeros_like(solved)
+    np.testing.assert_array_equal(net_colour(black, net), black)
+    np.testing.assert_array_equal(net_colour(solved, black), solved)
