@@ -70,7 +70,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                         help="albedo: 'ratio' (default) divides the photo by the SH-9 shading of the "
                              "de-lighting net's light at the predicted normals; 'solve' solves the input "
                              "light by inverse rendering on the mesh and divides by its ray-traced shading "
-                             "(cast shadows included; ~0.8 s more at 512); 'net' keeps the de-lighting "
+                             "(cast shadows included; ~0.45 s more at 512); 'net' keeps the de-lighting "
                              "net's own albedo (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=spp_value, metavar="N",
