@@ -556,7 +556,7 @@ def stage_reconstruct(frame: Frame, options, models: Models) -> None:
 
     g = frame.geometry
     side = max(frame.crop_mask.shape[0] // MESH_STEP, 2)
-    mask = shrink_inside(np.ones_like(frame.crop_mask), frame.crop_mask, side, weighted=False)
+    mask = shrink(frame.crop_mask, side)
     sigma = DEPTH_SIGMA * side
     front = smooth_depth(shrink_inside(g.front_depth, frame.crop_mask, side), mask, sigma)
     back = np.minimum(smooth_depth(shrink_inside(g.back_depth, frame.crop_mask, side), mask, sigma), front)
@@ -565,20 +565,19 @@ def stage_reconstruct(frame: Frame, options, models: Models) -> None:
     frame.notes["reconstruct"] = {"vertices": int(len(frame.mesh.vertices)), "faces": int(len(frame.mesh.faces))}
 
 
-def shrink_inside(values: np.ndarray, mask: np.ndarray, side: int, weighted: bool = True) -> np.ndarray:
-    """(side, side) float32 area average of a square map (R, R) over the soft person mask (R, R):
-    each coarse pixel the mean of its fine pixels weighted by the mask, so depths outside the
-    person do not leak into its outline (0 where the mask is); weighted=False: the plain area
-    average of values * mask (the coarse mask itself)."""
+def shrink(image: np.ndarray, side: int) -> np.ndarray:
+    """(side, side, ...) float32 area average of a square map (R, R, ...)."""
     import cv2
 
+    return cv2.resize(np.ascontiguousarray(image, np.float32), (side, side), interpolation=cv2.INTER_AREA)
+
+
+def shrink_inside(values: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray:
+    """(side, side) float32 area average of a square map (R, R) over the soft person mask
+    (R, R): each coarse pixel the mean of its fine pixels weighted by the mask, so depths
+    outside the person do not leak into its outline (0 where the mask is 0)."""
     weight = np.asarray(mask, np.float32)
-    shrink = lambda a: cv2.resize(np.ascontiguousarray(a, np.float32), (side, side),  # noqa: E731
-                                  interpolation=cv2.INTER_AREA)
-    total = shrink(np.asarray(values, np.float32) * weight)
-    if not weighted:
-        return total
-    coverage = shrink(weight)
+    total, coverage = shrink(np.asarray(values, np.float32) * weight, side), shrink(weight, side)
     return np.where(coverage > 0, total / np.where(coverage > 0, coverage, 1.0), 0.0).astype(np.float32)
 
 
