@@ -11,9 +11,11 @@ Validation scenes, to choose settings on (used for the mask's edge snapping):
 `python -m export.factory.generate --out data/factory512val --count 20 --splits val=1
 --resolution 512 --workers 1 --seed 2 --spp 128 --target-error 0.03 --bounces 2` then
 `python -m export.factory.eval_scenes data/factory512val data/evalval512 --split val`.
-A larger validation set, 150 scenes at 256 with many more people and outfits (the factory's
-256-pixel validation split; its generating command is in data/factory256p/dataset.json):
-`python -m export.factory.eval_scenes data/factory256p data/evalval256 --split val`, then
+A larger validation set, 150 scenes at 256 with many more people and outfits:
+`python -m export.factory.generate --out data/factory256p --count 1500 --splits
+train=0.9,val=0.1 --resolution 256 --workers 2 --seed 0 --spp 128 --target-error 0.03
+--bounces 2` (the nets' training set), then `python -m export.factory.eval_scenes
+data/factory256p data/evalval256 --split val`, then
 `relight eval data/evalval256 --resolution 256 --use-gt-mask` (the albedo's single gain was
 chosen on it).
 """
