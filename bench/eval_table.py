@@ -30,9 +30,9 @@ from pathlib import Path
 
 RUNS = [  # (method, true mask, albedo source; None: the default)
     ("raytrace", False, None), ("raytrace-norefine", False, None), ("sh9", False, None),
-    ("sh25", False, None), ("raytrace", False, "solve"), ("raytrace", False, "net"),
+    ("sh25", False, None), ("raytrace", False, "ratio"), ("raytrace", False, "net"),
     ("raytrace", True, None), ("raytrace-norefine", True, None), ("sh9", True, None),
-    ("raytrace", True, "solve"), ("raytrace", True, "net"),
+    ("raytrace", True, "ratio"), ("raytrace", True, "net"),
 ]
 
 

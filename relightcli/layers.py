@@ -53,8 +53,8 @@ LAYERS = {
         Layer("body_depth", "_body_depth", ".exr",
               "the fitted body's depth on the person, linear EXR: R front z, G back z (crop units: the crop "
               "spans [-1, 1], +z toward the camera), B 1 where a body is"),
-        Layer("light", "_light", ".hdr", "estimated input lighting, 32x16 lat-long HDR (--albedo solve: "
-              "solved on the mesh)"),
+        Layer("light", "_light", ".hdr", "estimated input lighting, 32x16 lat-long HDR (solved on the mesh; "
+              "--albedo ratio|net: the de-lighting net's)"),
         Layer("preview", "_preview", ".png", "one sheet: input, albedo, normal, shading, relit, input light, env"),
     )
 }
@@ -64,10 +64,11 @@ DEFAULT_OUTPUTS = ("relit",)
 # Shading methods: the paper (ray tracing + learned refinement), its ablation, and the SH baselines.
 METHODS = ("raytrace", "raytrace-norefine", "sh9", "sh25")
 
-# Albedo sources: the photo divided by the SH-9 shading of the de-lighting net's light (default),
-# by the ray-traced shading of the input light solved by inverse rendering on the mesh, or the
-# de-lighting net's own albedo head (the paper's)
-ALBEDO_SOURCES = ("ratio", "solve", "net")
+# Albedo sources: the photo divided by the ray-traced shading of the input light solved by
+# inverse rendering on the mesh (default), by the SH-9 shading of the de-lighting net's light,
+# or the de-lighting net's own albedo head (the paper's)
+ALBEDO_SOURCES = ("solve", "ratio", "net")
+DEFAULT_ALBEDO = "solve"
 
 # Inputs a directory scan picks up (lower-case extensions).
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".exr", ".hdr")

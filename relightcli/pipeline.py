@@ -16,7 +16,7 @@ import numpy as np
 
 from relightcli.batch import Item, ItemReport
 from relightcli.errors import InputError
-from relightcli.layers import DEFAULT_RESOLUTION, DEFAULT_SHADOWS
+from relightcli.layers import DEFAULT_ALBEDO, DEFAULT_RESOLUTION, DEFAULT_SHADOWS
 
 # A person needs some pixels: below this side length nothing meaningful can be estimated.
 MIN_SIDE = 32
@@ -67,7 +67,7 @@ def output_needs(output: str, method: str) -> tuple[str, ...]:
 class RelightOptions:
     outputs: tuple[str, ...] = ("relit",)
     method: str = "raytrace"
-    albedo: str = "ratio"  # layers.ALBEDO_SOURCES
+    albedo: str = DEFAULT_ALBEDO  # layers.ALBEDO_SOURCES
     mask_path: Path | None = None
     rotate_deg: float = 0.0
     exposure_ev: float = 0.0

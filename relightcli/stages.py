@@ -399,27 +399,22 @@ def body_ao(frame: Frame, seed: int, step: int = 2) -> np.ndarray | None:
 
 def stage_delight(frame: Frame, options, models: Models) -> None:
     """De-lighting: the input lighting (16x32) and an albedo. The net gives a light and an
-    albedo from [crop, normals]. `--albedo ratio` (the default) divides the crop by the SH-9
-    irradiance of the net's light at the predicted normals; `--albedo solve` solves the light
-    again by inverse rendering on the mesh (solve_input_light) and divides the crop by the
-    ray-traced shading of that light (cast shadows and occlusion leave the albedo with it);
-    both blend into the net's albedo where that shading is too dark to divide by
+    albedo from [crop, normals]. `--albedo solve` (the default) solves the light again by
+    inverse rendering on the mesh (solve_input_light) and divides the crop by the ray-traced
+    shading of that light (cast shadows and occlusion leave the albedo with it); `--albedo
+    ratio` divides by the SH-9 irradiance of the net's light at the predicted normals; both
+    blend into the net's albedo where that shading is too dark to divide by
     (compose.ratio_albedo), take the net's albedo level (one gain) and its albedo on the
     outline (compose.anchor_albedo). `--albedo net` keeps the net's (the paper's).
 
-    Measured at 512 (`--method raytrace-norefine` on the 20 validation scenes, true mask;
-    albedo / relit PSNR): ratio 16.15 / 16.57, solve 16.87 / 17.07; with an oracle per-channel
-    albedo gain (shape alone) 18.90 / 18.43 against 20.01 / 19.24; without the anchoring the
-    solve's own level scores 16.59 / 17.06; dividing by the traced shading of the *true* light
-    19.67 / 19.95: the light's shape and level, not the division, is what is left. On the 20
-    test scenes (`--method raytrace`, one light colour: render.inverse.solve_light) the solve
-    gains less: true mask 18.70 / 18.05 -> 18.92 / 18.31, own mask 18.45 / 17.85 -> 18.61 /
-    17.98, for ~1.0 s more per photo at 512 (over the 2 s target then). The input shading is
-    traced with the target's effort: capped at 8 samples per pixel it lost 0.04 / 0.09 dB on
-    validation for ~25% less time per image. Since the albedo took one gain (compose.
-    anchor_albedo) and the solved light the net's colour (net_colour), relit / albedo on the
-    test scenes: ratio 18.67 / 19.47, solve 18.76 / 19.71 (true mask 19.03 / 19.84, 19.23 /
-    20.16), for ~0.45 s more (1.58 s a photo at 512): not the default yet."""
+    Measured (`relight eval DATA [--albedo ratio]`, relit / albedo PSNR, ratio -> solve): test
+    scenes (data/eval512) 18.67 / 19.47 -> 18.76 / 19.71, true mask 19.03 / 19.84 -> 19.23 /
+    20.16; 150 validation scenes at 256, true mask, 17.70 / 18.27 -> 18.13 / 18.80; 20 at 512
+    16.77 / 16.14 -> 17.39 / 16.99; for ~0.45 s more a photo at 512. Dividing by the traced
+    shading of the *true* light scores 19.67 / 19.95 (validation, 512, no refinement): the
+    light's shape and level, not the division, is what is left. The input shading is traced
+    with the target's effort: capped at 8 samples per pixel it lost 0.04 / 0.09 dB on
+    validation for ~25% less time per image."""
     from relightcli.render.environment import EnvironmentLight
     from relightcli.render.sh import project_sh, sh_irradiance_shading
 

@@ -17,8 +17,8 @@ from pathlib import Path
 
 from relightcli import __version__
 from relightcli.errors import EXIT_MISSING, EXIT_OK, EXIT_USAGE, RelightError, UsageError
-from relightcli.layers import (ALBEDO_SOURCES, DEFAULT_OUTPUTS, DEFAULT_RESOLUTION, DEFAULT_SHADOWS,
-                               DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, LAYERS, METHODS, SHADOW_STEP)
+from relightcli.layers import (ALBEDO_SOURCES, DEFAULT_ALBEDO, DEFAULT_OUTPUTS, DEFAULT_RESOLUTION,
+                               DEFAULT_SHADOWS, DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, LAYERS, METHODS, SHADOW_STEP)
 
 SUBCOMMANDS = ("shade", "info", "eval")
 
@@ -66,12 +66,12 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, writes: bool = True
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     """Albedo source, ray-tracing effort, seed and working resolution (shared by relight and eval)."""
-    parser.add_argument("--albedo", choices=ALBEDO_SOURCES, default="ratio",
-                        help="albedo: 'ratio' (default) divides the photo by the SH-9 shading of the "
-                             "de-lighting net's light at the predicted normals; 'solve' solves the input "
-                             "light by inverse rendering on the mesh and divides by its ray-traced shading "
-                             "(cast shadows included; ~0.45 s more at 512); 'net' keeps the de-lighting "
-                             "net's own albedo (the paper's)")
+    parser.add_argument("--albedo", choices=ALBEDO_SOURCES, default=DEFAULT_ALBEDO,
+                        help="albedo: 'solve' (default) solves the input light by inverse rendering on "
+                             "the mesh and divides the photo by its ray-traced shading (cast shadows "
+                             "leave the albedo); 'ratio' divides by the SH-9 shading of the de-lighting "
+                             "net's light at the predicted normals (~0.45 s less at 512); 'net' keeps "
+                             "the de-lighting net's own albedo (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=spp_value, metavar="N",
                           help=f"ray-tracing samples per pixel, 1..{MAX_SPP}")

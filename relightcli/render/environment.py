@@ -185,12 +185,17 @@ def lookup_normal_table(table: np.ndarray, normals) -> np.ndarray:
     x, y = u * width, np.clip(v * rows, 0.0, rows)
     col0, row0 = np.floor(x), np.minimum(np.floor(y), rows - 1)
     extra = (1,) * (table.ndim - 2)
-    fx, fy = (x - col0).reshape(-1, *extra), (y - row0).reshape(-1, *extra)
+    # the weights in the table's precision: a float32 table is blended in float32
+    fx, fy = ((f.astype(table.dtype) if table.dtype.kind == "f" else f).reshape(-1, *extra)
+              for f in (x - col0, y - row0))
     col0 = col0.astype(np.int64) % width
     col1, row0 = (col0 + 1) % width, row0.astype(np.int64)
-    top = (1 - fx) * table[row0, col0] + fx * table[row0, col1]
-    bottom = (1 - fx) * table[row0 + 1, col0] + fx * table[row0 + 1, col1]
-    return (1 - fy) * top + fy * bottom
+    top = table[row0, col0]
+    top += fx * (table[row0, col1] - top)
+    bottom = table[row0 + 1, col0]
+    bottom += fx * (table[row0 + 1, col1] - bottom)
+    top += fy * (bottom - top)
+    return top
 
 
 def _irradiance_table(radiance, nodes, texel_rows):

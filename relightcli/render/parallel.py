@@ -56,14 +56,20 @@ class ForkedPasses:
 
     def statistics(self, first_pass, passes, rows, groups):
         """`pass_statistics` of `rows`, split over the processes; adds their rays to the scene."""
-        chunks = [c for c in np.array_split(rows, self.workers) if c.size]
-        children = self._pool.map_async(_worker_round, [(first_pass, passes, c, groups) for c in chunks[1:]])
-        own = pass_statistics(self.run.values(first_pass, passes, chunks[0]), first_pass, groups)
+        # Every `workers`-th pixel to each process: neighbouring pixels cost alike, so the
+        # shares balance (halves of the mask, head and legs, did not)
+        shares = [slice(k, None, self.workers) for k in range(min(self.workers, rows.size))]
+        children = self._pool.map_async(_worker_round, [(first_pass, passes, rows[s], groups) for s in shares[1:]])
+        own = pass_statistics(self.run.values(first_pass, passes, rows[shares[0]]), first_pass, groups)
         results = [(own, 0)] + children.get()
         self.run.scene.rays_traced += sum(r[1] for r in results)
-        squares = [r[0][1] for r in results]
-        return (np.concatenate([r[0][0] for r in results]),
-                None if squares[0] is None else np.concatenate(squares))
+        group_sums = np.empty((rows.size,) + own[0].shape[1:])
+        squares = None if own[1] is None else np.empty((rows.size, 3))
+        for share, ((sums, square_sums), _) in zip(shares, results):
+            group_sums[share] = sums
+            if squares is not None:
+                squares[share] = square_sums
+        return group_sums, squares
 
     def close(self):
         self._pool.terminate()
