@@ -410,8 +410,7 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     Measured (`relight eval DATA [--albedo ratio]`, relit / albedo PSNR, ratio -> solve): test
     scenes (data/eval512) 18.67 / 19.47 -> 18.82 / 19.74, true mask 19.04 / 19.84 -> 19.28 /
     20.17; 150 validation scenes at 256, true mask, 17.70 / 18.27 -> 18.13 / 18.80; 20 at 512
-    16.77 / 16.14 -> 17.39 / 16.99 (before the solved light was held smooth, which left
-    validation as it was); for ~0.45 s more a photo at 512. Dividing by the traced
+    16.77 / 16.14 -> 17.38 / 16.94; for ~0.45 s more a photo at 512. Dividing by the traced
     shading of the *true* light scores 19.67 / 19.95 (validation, 512, no refinement): the
     light's shape and level, not the division, is what is left. The input shading is traced
     with the target's effort: capped at 8 samples per pixel it lost 0.04 / 0.09 dB on
