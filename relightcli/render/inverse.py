@@ -182,7 +182,9 @@ def solve_light(transport: Transport, photo: np.ndarray, albedo: np.ndarray, wei
     0.16 / 10%. The albedo barely depends on it (the shading of any light that fits the pixels
     divides them alike), the light layer does: at 0.1 it was texel noise with black holes. Of the
     smoother ones only the robust kept the albedo without a step at a sun's shadow edge
-    (tests/render/test_inverse.py: quadratic 1 and 10 left 14% and 31%).
+    (tests/render/test_inverse.py: quadratic 1 and 10 left 14% and 31%). On the 20 validation
+    scenes at 512 (the default pipeline, true mask) the robust one cost 0.01 / 0.05 dB of relit /
+    albedo (17.39 / 16.99 -> 17.38 / 16.94); on the test scenes it gained 0.07 / 0.03.
 
     One colour for the whole light, measured against a shape per channel (three solves apart,
     which gave maps that jump in colour from texel to texel): albedo / relit with the true mask,
