@@ -65,10 +65,11 @@ def ray_origins(scene: Scene, points, g):
 def visible(scene: Scene, origins, g, directions, active, max_distance=None):
     """(N,) bool: unoccluded rays, traced only where `active`; rays below the geometric
     surface (g.w <= 0) are blocked by the surface itself and never traced."""
-    todo = active & (dot(g, directions) > 0)
+    todo = np.flatnonzero(active & (dot(g, directions) > 0))  # indices: gathers ~5x faster than a mask
     result = np.zeros(origins.shape[0], dtype=bool)
-    if todo.any():
-        result[todo] = ~scene.occluded(origins[todo], directions[todo], max_distance)
+    if todo.size:
+        result[todo] = ~scene.occluded(np.take(origins, todo, axis=0), np.take(directions, todo, axis=0),
+                                       max_distance)
     return result
 
 

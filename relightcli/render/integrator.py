@@ -280,9 +280,11 @@ class _Run:
         (seed, stream, pass, pixel)."""
         dims = self.streams[stream]
         if self.sampler == "sobol":
-            k = np.arange(first_pass, first_pass + passes)
-            points = self.sobol[stream][k // RQMC_GROUPS][:, None, :]
-            u = points + self.shift[stream][(k % RQMC_GROUPS)[:, None], rows[None, :]]
+            every = rows.size == self.pixel_count
+            shifts = [group if every else np.take(group, rows, axis=0) for group in self.shift[stream]]
+            u = np.empty((passes, rows.size, dims))
+            for i, k in enumerate(range(first_pass, first_pass + passes)):
+                np.add(self.sobol[stream][k // RQMC_GROUPS], shifts[k % RQMC_GROUPS], out=u[i])
             u -= u >= 1.0  # Cranley-Patterson rotation: (point + shift) mod 1
             return u.reshape(-1, dims)
         out = np.empty((passes, rows.size, dims))
@@ -305,18 +307,23 @@ class _Run:
         pooled = np.sqrt(np.maximum(pooled, 0.0))  # the filter's round-off can dip below 0
         return np.maximum(own, POOL_FLOOR * pooled)
 
+    def repeat(self, per_pixel, rows, passes):
+        """The rows `rows` of a per-pixel array, once per pass, pass-major: one gather and
+        copies of it (gathering every copy cost ~3x as much)."""
+        chosen = per_pixel if rows.size == self.pixel_count else np.take(per_pixel, rows, axis=0)
+        return np.tile(chosen, (passes, 1))
+
     def values(self, first_pass, passes, rows):
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
         u = self.uniforms("direct", first_pass, passes, rows)
-        tile = np.tile(rows, passes)
-        p, n, g = (np.take(a, tile, axis=0) for a in (self.origins, self.normals, self.geometric))
-        value = np.zeros((tile.size, 3))
+        p, n, g = (self.repeat(a, rows, passes) for a in (self.origins, self.normals, self.geometric))
+        value = np.zeros((passes * rows.size, 3))
         d = 0
         for (light, strategy), unoccluded in zip(self.plan.terms, self.unoccluded):
             k = DIMENSIONS[strategy]
             value += direct_lighting(self.scene, light, p, n, g, u[:, d:d + k], strategy,
                                      self.max_distance,
-                                     None if unoccluded is None else np.take(unoccluded, tile, axis=0))
+                                     None if unoccluded is None else self.repeat(unoccluded, rows, passes))
             d += k
         if self.bounces == 2:
             value += indirect_lighting(self.scene, self.plan.light, p, n, g,
