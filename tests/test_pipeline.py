@@ -608,7 +608,7 @@ def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one(
     options = RelightOptions(resolution=32, albedo="ratio")
     for stage in (stage_crop, stage_geometry, stage_ao, stage_delight):
         stage(frame, options, models)
-    assert models.sides == [16, 16, 16]
+    assert models.sides == [16] * 5  # geometry and de-lighting twice (the crop and its mirror), ao once
     assert frame.geometry.front_normal.shape == (32, 32, 3) and frame.ao.shape == (32, 32)
     np.testing.assert_allclose(np.linalg.norm(frame.geometry.front_normal, axis=-1), 1.0, rtol=1e-5)
     assert frame.albedo.shape == (32, 32, 3)

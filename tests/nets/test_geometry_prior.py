@@ -101,8 +101,8 @@ def test_the_geometry_stage_uses_the_prior_net_only_with_a_fitted_body():
                                         (True, False, "geometry", "none: no geometry_prior model")):
         frame, models = _frame(with_body), _Models(ships)
         stage_geometry(frame, options, models)
-        assert [name for name, _ in models.calls] == [used]
+        assert [name for name, _ in models.calls] == [used, used]  # the crop and its mirror
         assert frame.notes["geometry"] == {"net": used, "prior": why}
         if used == "geometry_prior":
-            assert models.calls[0][1] == (32, 32, 9)
+            assert models.calls[0][1] == models.calls[1][1] == (32, 32, 9)
         assert frame.normal.shape == (32, 32, 3)
