@@ -300,26 +300,24 @@ def unit(normals: np.ndarray) -> np.ndarray:
 
 
 # The nets whose maps are averaged with their maps of the mirrored crop (mirrored back): two
-# runs each instead of one, ~0.05 s at 256. Measured on the 150 validation scenes at 256
-# (`relight eval data/evalval256 --resolution 256 --use-gt-mask`, relit / albedo / shading dB,
-# normals): none 18.13 / 18.80 / 19.17, 22.70 deg; geometry and de-lighting nets 18.15 /
-# 18.83 / 19.22, 22.41 deg (normals better in 116 of 150 scenes, shading in 96).
+# runs each instead of one (0.1-0.2 s more at 512 on a slow day). Chosen on the 150
+# validation scenes at 256 (`relight eval data/evalval256 --resolution 256 --use-gt-mask`,
+# relit / albedo / shading dB, normals): none 18.13 / 18.80 / 19.17, 22.70 deg; the geometry
+# net 18.14 / 18.81 / 19.22, 22.41; both 18.15 / 18.83 / 19.22, 22.41 (normals better in 116
+# of 150 scenes, shading in 96). Test (data/eval512): relit / albedo 18.82 / 19.74 -> 18.90 /
+# 19.88, normals 19.9 -> 19.7 deg.
 MIRROR_AVERAGED = ("geometry", "delight")
 
 
 def mirror(image: np.ndarray, vectors: tuple = ()) -> np.ndarray:
     """(H, W[, C]) image mirrored left-right (x -> -x in the camera frame), with the x component
-    negated of each 3-vector whose first channel is in `vectors` (0 for a normal map)."""
+    negated of each 3-vector whose first channel is in `vectors` (0 for a normal map). A
+    lat-long light mirrors the same way, its texel columns reversed (DESIGN.md's map: u = 1/2 +
+    atan2(x, -z) / 2 pi, so x -> -x takes u to 1 - u)."""
     out = np.ascontiguousarray(image[:, ::-1])
     for channel in vectors:
         out[..., channel] = -out[..., channel]
     return out
-
-
-def mirror_light(light: np.ndarray) -> np.ndarray:
-    """A lat-long light (H, 2H, 3) mirrored x -> -x: texel column j becomes 2H - 1 - j (the
-    DESIGN.md map: u = 1/2 + atan2(x, -z) / 2 pi)."""
-    return np.ascontiguousarray(light[:, ::-1])
 
 
 def average_geometry(g, mirrored):
@@ -463,7 +461,7 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     if "delight" in MIRROR_AVERAGED:
         mirrored = net.predict(mirror(image), mirror(normal, (0,)))
         result = replace(result, albedo=0.5 * (result.albedo + mirror(mirrored.albedo)),
-                         light=0.5 * (result.light + mirror_light(mirrored.light)))
+                         light=0.5 * (result.light + mirror(mirrored.light)))
     albedo = resample(result.albedo, options.resolution)
     frame.light = result.light
     if options.albedo == "solve":

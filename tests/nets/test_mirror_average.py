@@ -11,17 +11,17 @@ import numpy as np
 from relightcli.io.envmap import texel_directions
 from relightcli.io.images import read_image
 from relightcli.nets.geometry import GeometryMaps
-from relightcli.stages import Models, average_geometry, mirror, mirror_light, unit
+from relightcli.stages import Models, average_geometry, mirror, unit
 
 TPOSE = Path(__file__).resolve().parents[1] / "data" / "tpose_render.png"
 
 
 def test_a_mirrored_light_holds_the_mirrored_directions():
     directions = texel_directions(16, 32)
-    np.testing.assert_allclose(mirror_light(directions * np.array([-1.0, 1.0, 1.0])), directions, atol=1e-12)
+    np.testing.assert_allclose(mirror(directions * np.array([-1.0, 1.0, 1.0])), directions, atol=1e-12)
     light = np.zeros((16, 32, 3), np.float32)
     light[5, 24] = 1.0  # a texel to the camera's right (+x)
-    mirrored = mirror_light(light)
+    mirrored = mirror(light)
     (row, col), = np.argwhere(mirrored[..., 0] > 0)
     np.testing.assert_allclose(directions[row, col], directions[5, 24] * [-1.0, 1.0, 1.0], atol=1e-12)
 
