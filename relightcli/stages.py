@@ -334,7 +334,7 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
     """Front/back normals and depth of the person in the crop. With a converged body fit
     (stage_body_maps) the prior net refines the fitted bodies' maps into the clothed person's
     (relightcli.nets.geometry.GeometryPriorNet); without one, the net from the image alone.
-    The note says which ran and why."""
+    Both run on the mirrored crop too (MIRROR_AVERAGED). The note says which ran and why."""
     from relightcli.nets.geometry import prior_channels
 
     maps = frame.body_maps
@@ -342,17 +342,14 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
     net = models.get("geometry_prior" if with_prior else "geometry")
     side = net_side(net, options.resolution)
     crop = resample(frame.crop, side)
+    prior = (prior_channels(maps.mask, maps.front_normal, maps.back_normal, maps.front_depth,
+                            maps.back_depth, side),) if with_prior else ()
+    g = net.predict(crop, *prior)
+    if "geometry" in MIRROR_AVERAGED:  # the prior's front and back normals mirror too
+        g = average_geometry(g, net.predict(mirror(crop), *(mirror(p, (0, 3)) for p in prior)))
     if with_prior:
-        prior = prior_channels(maps.mask, maps.front_normal, maps.back_normal,
-                               maps.front_depth, maps.back_depth, side)
-        g = net.predict(crop, prior)
-        if "geometry" in MIRROR_AVERAGED:
-            g = average_geometry(g, net.predict(mirror(crop), mirror(prior, (0, 3))))
         frame.notes["geometry"] = {"net": "geometry_prior", "prior": "fitted bodies"}
     else:
-        g = net.predict(crop)
-        if "geometry" in MIRROR_AVERAGED:
-            g = average_geometry(g, net.predict(mirror(crop)))
         why = "no geometry_prior model" if maps is not None else "no converged body fit"
         frame.notes["geometry"] = {"net": "geometry", "prior": f"none: {why}"}
     if side != options.resolution:
