@@ -548,10 +548,11 @@ def mesh_transport(frame: Frame, pixels: np.ndarray, seed: int):
     reconstruction and the fitted bodies as the target shading is (trace_shading)."""
     from relightcli.render.inverse import light_transport
 
-    transport = light_transport(frame.scene, frame.hits, pixels, samples=SOLVE_SAMPLES, seed=seed)
+    transport = light_transport(frame.scene, frame.hits, pixels, samples=SOLVE_SAMPLES, seed=seed, lift=SHADOW_LIFT)
     if frame.body_scene is None:
         return transport
-    body = light_transport(frame.body_scene, frame.body_hits, pixels, samples=SOLVE_SAMPLES, seed=seed)
+    body = light_transport(frame.body_scene, frame.body_hits, pixels, samples=SOLVE_SAMPLES, seed=seed,
+                           lift=SHADOW_LIFT)
     weight = body_weight(frame).reshape(-1)[pixels][:, None]
     transport.matrix = ((1.0 - weight) * transport.matrix + weight * body.matrix).astype(np.float32)
     return transport
@@ -737,6 +738,13 @@ def body_weight(frame: Frame) -> np.ndarray:
     return np.float32(BODY_SHADING_WEIGHT) * body_shading_pixels(frame)
 
 
+# Shadow rays leave the meshes lifted toward the shading normals (render.estimators.
+# lifted_origins, in edge lengths): the reconstruction is shaded with the nets' normals, the
+# bodies with their smooth vertex normals, and traced from the triangles themselves a grazing
+# sun's terminator came out as a staircase of facets (2-3 px steps across a face).
+SHADOW_LIFT = 1.0
+
+
 def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
     """(shading (R, R, 3), note): the reconstruction ray-traced under `light` (an
     EnvironmentLight), blended with the fitted bodies' (body_weight) where a fit converged;
@@ -788,7 +796,8 @@ def traced(scene, hits, light, spp, target, seed, threads, wanted, step) -> tupl
     from relightcli.render.integrator import shade_environment
 
     coarse = hits.subsampled(step)
-    result = shade_environment(scene, coarse, light, spp=spp, target_error=target, seed=seed, workers=threads)
+    result = shade_environment(scene, coarse, light, spp=spp, target_error=target, seed=seed, workers=threads,
+                               lift=SHADOW_LIFT)
     values = np.concatenate([result.mean, result.stderr], axis=-1)
     if step == 1:
         # means and errors filled together: one distance transform per render

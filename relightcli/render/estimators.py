@@ -62,6 +62,27 @@ def ray_origins(scene: Scene, points, g):
     return points + scene.ray_offset * g
 
 
+def lifted_origins(scene: Scene, points, n, g, lift: float):
+    """Shadow-ray origins (N, 3) float64 for surface points (N, 3) with shading normals n and
+    geometric normals g (N, 3, on the same side), and the normals (N, 3) whose hemisphere the
+    rays leave through (`visible`'s g).
+
+    lift 0: the points off the surface by the scene's ray offset (ray_origins), the triangle's
+    own hemisphere: a direction the shading normal faces but the triangle does not is blocked by
+    the triangle itself. Where the shading normals are smoother than the triangles (interpolated
+    vertex normals, or normals from another source), that puts a jagged shadow terminator on the
+    facets. lift > 0: each point also moves along n by lift x the scene's median edge length x
+    sin(angle(n, g)), and rays leave through n's hemisphere: a ray below the triangle's plane
+    then runs at least lift edge lengths before it crosses it, so the triangle it starts on and
+    its neighbours on a convex surface no longer block it, while farther occluders still do.
+    Zero where n is g: flat parts keep their contact shadows."""
+    origins = ray_origins(scene, points, g)
+    if lift <= 0:
+        return origins, g
+    tilt = np.linalg.norm(np.cross(n, g), axis=1)
+    return origins + (lift * scene.edge_length * tilt)[:, None] * n, n
+
+
 def visible(scene: Scene, origins, g, directions, active, max_distance=None):
     """(N,) bool: unoccluded rays, traced only where `active`; rays below the geometric
     surface (g.w <= 0) are blocked by the surface itself and never traced."""

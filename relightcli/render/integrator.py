@@ -30,7 +30,7 @@ from relightcli.render.estimators import (
     RAYS_PER_SAMPLE,
     direct_lighting,
     indirect_lighting,
-    ray_origins,
+    lifted_origins,
 )
 from relightcli.render.parallel import ForkedPasses, pass_statistics
 from relightcli.render.scene import Scene
@@ -132,7 +132,7 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
                       time_budget: float | None = None, strategy: str = "mis",
                       bounces: int = 1, albedo=1.0, sampler: str = "sobol", seed: int = 0,
                       min_spp: int = 16, max_distance: float | None = None,
-                      workers: int = 1, control_variate: bool = True) -> ShadingResult:
+                      workers: int = 1, control_variate: bool = True, lift: float = 0.0) -> ShadingResult:
     """Shading (DESIGN.md units) of every masked pixel under `light`.
 
     spp: passes per pixel, or the cap when target_error / time_budget are given (rounded up
@@ -144,7 +144,8 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     (H, W, 3) image aligned with the camera). max_distance: occluders farther than this
     (local units) are ignored. workers: processes sampling in parallel (forked per render;
     worth it from about a second of work). control_variate: see `plan_lighting` (off only
-    to measure what it brings).
+    to measure what it brings). lift: shadow rays leave from points lifted off the triangles
+    toward smoother shading normals (estimators.lifted_origins; 0: from the triangles).
     """
     start = time.perf_counter()
     _check_options(spp, target_error, time_budget, bounces, sampler, min_spp)
@@ -159,7 +160,7 @@ def shade_environment(scene: Scene, geometry: PixelGeometry, light: EnvironmentL
     state = _State(pixels.size, groups)
     if plan.terms and pixels.size:
         run = _Run(scene, geometry, plan, pixels, bounces, albedo, max_distance,
-                   sampler, seed, spp)
+                   sampler, seed, spp, lift)
         rays_before = scene.rays_traced
         _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, workers)
         rays = scene.rays_traced - rays_before
@@ -241,15 +242,16 @@ class _Run:
     """Everything one render needs to produce pass values for any set of pixels."""
 
     def __init__(self, scene, geometry, plan, pixels, bounces, albedo, max_distance,
-                 sampler, seed, spp):
+                 sampler, seed, spp, lift):
         self.scene, self.plan = scene, plan
         self.bounces, self.max_distance = bounces, max_distance
         # float32 per pixel, as the tracer takes them (the pass loop gathers them every round)
         points = geometry.position.reshape(-1, 3)[pixels].astype(np.float64)
         normals = geometry.normal.reshape(-1, 3)[pixels].astype(np.float64)
         geometric = geometry.geometric_normal.reshape(-1, 3)[pixels].astype(np.float64)
-        self.origins = ray_origins(scene, points, geometric).astype(np.float32)
-        self.normals, self.geometric = normals.astype(np.float32), geometric.astype(np.float32)
+        origins, horizon = lifted_origins(scene, points, normals, geometric, lift)
+        self.origins = origins.astype(np.float32)
+        self.normals, self.horizon = normals.astype(np.float32), horizon.astype(np.float32)
         self.albedo_at = _albedo_lookup(albedo, geometry, scene)
         # Tabulated unoccluded shading for the control-variate terms, once per pixel
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
@@ -316,7 +318,7 @@ class _Run:
     def values(self, first_pass, passes, rows):
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
         u = self.uniforms("direct", first_pass, passes, rows)
-        p, n, g = (self.repeat(a, rows, passes) for a in (self.origins, self.normals, self.geometric))
+        p, n, g = (self.repeat(a, rows, passes) for a in (self.origins, self.normals, self.horizon))
         value = np.zeros((passes * rows.size, 3))
         d = 0
         for (light, strategy), unoccluded in zip(self.plan.terms, self.unoccluded):

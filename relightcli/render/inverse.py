@@ -20,7 +20,7 @@ import numpy as np
 
 from relightcli.io.envmap import direction_to_uv, texel_directions, texel_solid_angles, uv_to_direction
 from relightcli.render.environment import lookup_normal_table
-from relightcli.render.estimators import cosine_directions, ray_origins, visible
+from relightcli.render.estimators import cosine_directions, lifted_origins, visible
 
 LIGHT_HEIGHT = 16
 
@@ -41,7 +41,7 @@ class Transport:
 
 
 def light_transport(scene, geometry, pixels: np.ndarray, *, samples: int = 64, seed: int = 0,
-                    height: int = LIGHT_HEIGHT) -> Transport:
+                    height: int = LIGHT_HEIGHT, lift: float = 0.0) -> Transport:
     """The transport of the crop pixels `pixels` (flat indices into the (R, R) crop, all hit by
     `geometry`, a relightcli.render.camera.PixelGeometry of `scene`).
 
@@ -52,7 +52,8 @@ def light_transport(scene, geometry, pixels: np.ndarray, *, samples: int = 64, s
     the 1/pi of DESIGN.md's units). A control variate, as the integrator's "mis-cv": the
     noise is only in the occluded part, and noise in a least-squares design shrinks the
     solved light (a sun behind an arm came out at 48% of its radiance from plain cosine
-    samples, 66% with this, in tests/render/test_inverse.py's shadow scene)."""
+    samples, 66% with this, in tests/render/test_inverse.py's shadow scene). lift: as the ray
+    tracer's (relightcli.render.estimators.lifted_origins)."""
     width = 2 * height
     pixels = np.asarray(pixels, np.int64)
     count = pixels.size
@@ -62,7 +63,7 @@ def light_transport(scene, geometry, pixels: np.ndarray, *, samples: int = 64, s
     normal = geometry.normal.reshape(-1, 3)[pixels]
     g = geometry.geometric_normal.reshape(-1, 3)[pixels]
     matrix = unoccluded_transport(normal, height)
-    origins = ray_origins(scene, position, g)
+    origins, g = lifted_origins(scene, position.astype(np.float64), normal.astype(np.float64), g, lift)
     rng = np.random.default_rng(seed)
     side = int(np.ceil(np.sqrt(samples)))
     for k in range(samples):  # stratum k of a side x side grid, jittered per pixel

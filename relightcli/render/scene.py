@@ -94,6 +94,8 @@ class Scene:
         if not self.diagonal > 0:
             raise InputError("mesh has zero extent", fix="pass a mesh with non-degenerate triangles")
         self.ray_offset = RAY_OFFSET_FRACTION * self.diagonal
+        corners = vertices[faces]
+        self.edge_length = float(np.median(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)))
         self.vertices = np.ascontiguousarray(vertices - self.centre, dtype=np.float32)
         self.faces = np.ascontiguousarray(faces, dtype=np.int32)
         self.bounds_local = np.stack([lo - self.centre, hi - self.centre])
