@@ -99,3 +99,40 @@ def test_exit_codes_through_the_dispatcher(inputs, tmp_path):
                    "--res", "8", "8", "--spp", "4", "--threads", "1"])
     missing = cli.main(["shade", str(tmp_path / "none.obj"), "--hdr", str(hdr), "-o", str(tmp_path / "b.exr")])
     assert (ok, missing) == (0, 4)
+
+
+def test_lift_takes_the_facets_off_a_coarse_balls_terminator(tmp_path):
+    from relightcli.io.envmap import texel_solid_angles, uv_to_direction
+    from relightcli.io.images import write_image
+
+    mesh_path = tmp_path / "coarse.obj"
+    trimesh.creation.icosphere(subdivisions=2).export(mesh_path)
+    # a small sun low over the ball's right side, toward the camera (+Z)
+    height, row, col = 256, 105, 417
+    env = np.zeros((height, 2 * height, 3), np.float32)
+    env[row, col] = 1000.0
+    hdr_path = tmp_path / "sun.exr"
+    write_image(hdr_path, env, half=False)
+    sun = uv_to_direction((col + 0.5) / (2 * height), (row + 0.5) / height)
+    scale = 1000.0 * texel_solid_angles(height, 2 * height)[row, col] / np.pi
+    shaded = {}
+    for lift in ("0", "1"):
+        out = tmp_path / f"lift{lift}.exr"
+        _parse([str(mesh_path), "--hdr", str(hdr_path), "-o", str(out), "--res", "64", "64",
+                "--spp", "8", "--lift", lift, "--mask-map", str(tmp_path / "mask.exr"), "--overwrite"])
+        shaded[lift] = _read(out)[..., 0]
+    # the smooth ball's shading where the sun is 0.1-0.3 off its horizon, from the coverage mask
+    # and the ball's normals (unit sphere at the origin; --rect is its bounds + 5%)
+    x, y = np.meshgrid((np.arange(64) + 0.5) / 64 * 2.2 - 1.1, 1.1 - (np.arange(64) + 0.5) / 64 * 2.2)
+    z = np.sqrt(np.clip(1.0 - x ** 2 - y ** 2, 0.0, None))
+    cosine = np.stack([x, y, z], axis=-1) @ sun
+    near = (_read(tmp_path / "mask.exr")[..., 0] > 0) & (x ** 2 + y ** 2 < 0.8) & (cosine > 0.1) & (cosine < 0.3)
+    assert near.sum() > 20
+    assert (shaded["0"][near] < 0.5 * scale * cosine[near]).any()
+    np.testing.assert_allclose(shaded["1"][near], scale * cosine[near], rtol=0.15)
+
+
+def test_lift_outside_its_range_is_refused(inputs, tmp_path):
+    mesh_path, hdr_path = inputs
+    with pytest.raises(SystemExit):
+        _parse([str(mesh_path), "--hdr", str(hdr_path), "-o", str(tmp_path / "s.exr"), "--lift", "-1"])
