@@ -122,3 +122,18 @@ def test_the_light_transport_lifts_its_rays_too():
     unoccluded = light_transport(scene, hits, pixels, samples=0)
     assert np.abs(lifted.matrix - unoccluded.matrix).max() == 0.0
     assert (plain.matrix < unoccluded.matrix - 1e-6).any()
+
+
+@pytest.mark.parametrize("size", [1e-3, 1e4])
+def test_the_lifted_terminator_is_the_same_at_tiny_and_huge_scales(size):
+    # Same ball, same sun, same pixels, every length times `size`: the lift follows the edges
+    _, hits, light, _ = _coarse_ball()
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    reference = shade_environment(Scene.from_trimesh(ball), hits, light, spp=8, lift=SHADOW_LIFT)
+    ball.apply_scale(size)
+    scene = Scene.from_trimesh(ball)
+    scaled = render_pixel_geometry(scene, tuple(size * c for c in (-1.1, 1.1, -1.1, 1.1)), (96, 96))
+    np.testing.assert_array_equal(scaled.mask, hits.mask)
+    result = shade_environment(scene, scaled, light, spp=8, lift=SHADOW_LIFT)
+    assert np.isfinite(result.mean).all() and np.isfinite(result.stderr).all()
+    np.testing.assert_allclose(result.mean, reference.mean, rtol=1e-3, atol=1e-6 * float(reference.mean.max()))
