@@ -759,7 +759,8 @@ def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
     step = SHADOW_STEP[options.shadows]
     own, result = traced(frame.scene, frame.hits, light, spp, own_target, options.seed, options.threads,
                          wanted, step)
-    shading, note = np.ascontiguousarray(own[..., :3]), {**_trace_note(result), "shadow_step": step}
+    shading, note = np.ascontiguousarray(own[..., :3]), {**_trace_note(result), "shadow_step": step,
+                                                         "shadow_lift": SHADOW_LIFT}
     if not blended:
         note["body"] = "no converged body fit: the reconstruction's shading alone"
         return shading, note

@@ -84,8 +84,9 @@ def lifted_origins(scene: Scene, points, n, g, lift: float):
 
 
 def visible(scene: Scene, origins, g, directions, active, max_distance=None):
-    """(N,) bool: unoccluded rays, traced only where `active`; rays below the geometric
-    surface (g.w <= 0) are blocked by the surface itself and never traced."""
+    """(N,) bool: unoccluded rays, traced only where `active`; rays below the surface (g.w <=
+    0, g the geometric normal, or the shading normal for lifted origins: lifted_origins) are
+    blocked by the surface itself and never traced."""
     todo = np.flatnonzero(active & (dot(g, directions) > 0))  # indices: gathers ~5x faster than a mask
     result = np.zeros(origins.shape[0], dtype=bool)
     if todo.size:

@@ -13,6 +13,7 @@ calling process traces one share itself. `parallel="thread"` keeps a thread pool
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import weakref
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
@@ -94,8 +95,6 @@ class Scene:
         if not self.diagonal > 0:
             raise InputError("mesh has zero extent", fix="pass a mesh with non-degenerate triangles")
         self.ray_offset = RAY_OFFSET_FRACTION * self.diagonal
-        corners = vertices[faces]
-        self.edge_length = float(np.median(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)))
         self.vertices = np.ascontiguousarray(vertices - self.centre, dtype=np.float32)
         self.faces = np.ascontiguousarray(faces, dtype=np.int32)
         self.bounds_local = np.stack([lo - self.centre, hi - self.centre])
@@ -115,6 +114,13 @@ class Scene:
         """From a trimesh.Trimesh; its vertex normals become the shading normals."""
         return cls(mesh.vertices, mesh.faces, vertex_normals=mesh.vertex_normals,
                    smooth_normals=smooth_normals, threads=threads, parallel=parallel)
+
+    @functools.cached_property
+    def edge_length(self) -> float:
+        """The median length of the triangles' edges: the scale by which shadow rays are lifted
+        off them (relightcli.render.estimators.lifted_origins)."""
+        corners = self.vertices[self.faces].astype(np.float64)
+        return float(np.median(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)))
 
     # ------------------------------------------------------------ frames
     def to_local(self, points):
