@@ -91,3 +91,12 @@ def chi_square_pvalue(observed, expected):
     if keep.sum() == 1:  # one possible cell: the test is that nothing fell elsewhere
         return 1.0
     return stats.chisquare(obs[keep], exp[keep] * obs[keep].sum() / exp[keep].sum()).pvalue
+
+
+def floor_under_a_square(resolution=96):
+    """A floor and a square floating above it, seen from above: (Scene, its PixelGeometry)."""
+    from relightcli.render.camera import render_pixel_geometry
+    from relightcli.render.scene import Scene
+
+    scene = Scene(*merge(quad(-4.0, 4.0, -4.0, 4.0, 0.0), quad(-0.5, 0.5, -0.5, 0.5, 1.0)))
+    return scene, render_pixel_geometry(scene, (-4.0, 4.0, -4.0, 4.0), (resolution, resolution))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from render_testing import merge, one_hot_map, quad
+from render_testing import floor_under_a_square, one_hot_map, quad
 
 from relightcli.io.envmap import uv_to_direction
 from relightcli.render.camera import pixel_centres, render_pixel_geometry
@@ -41,13 +41,6 @@ def test_upsampling_keeps_the_coarse_pixels_and_interpolates_between_them():
     np.testing.assert_array_equal(fine[:, 7], fine[:, 6])
 
 
-def _plane_under_a_square(resolution=96):
-    """A floor and a square floating above it, seen from above, and the sun's direction."""
-    scene = Scene(*merge(quad(-4.0, 4.0, -4.0, 4.0, 0.0), quad(-0.5, 0.5, -0.5, 0.5, 1.0)))
-    hits = render_pixel_geometry(scene, (-4.0, 4.0, -4.0, 4.0), (resolution, resolution))
-    return scene, hits
-
-
 def _render(scene, hits, env, step, spp=64):
     light = EnvironmentLight(env)
     values, result = traced(scene, hits, light, spp, None, 3, 1, hits.mask, step)
@@ -59,7 +52,7 @@ def test_a_cast_shadow_on_the_coarse_grid_matches_every_pixels_rays(sky):
     # A hard sun low in +X+Z, alone or a million times brighter than a uniform sky
     height, row, col = 128, 40, 224
     env = one_hot_map(height, row, col, 50.0) + np.float32(sky * 50.0)
-    scene, hits = _plane_under_a_square()
+    scene, hits = floor_under_a_square()
     full, full_err, light = _render(scene, hits, env, 1)
     half, half_err, _ = _render(scene, hits, env, 2)
     assert np.isfinite(half).all() and np.isfinite(half_err).all() and (half >= 0).all()
@@ -99,6 +92,6 @@ def test_a_convex_ball_on_the_coarse_grid_is_its_exact_unoccluded_shading():
 
 
 def test_a_black_environment_on_the_coarse_grid_shades_black():
-    scene, hits = _plane_under_a_square(32)
+    scene, hits = floor_under_a_square(32)
     half, half_err, _ = _render(scene, hits, np.zeros((16, 32, 3), np.float32), 2, spp=4)
     assert np.all(half == 0.0) and np.all(half_err == 0.0)

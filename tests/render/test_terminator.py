@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from render_testing import merge, one_hot_map, quad
+from render_testing import floor_under_a_square, one_hot_map, quad
 
 from relightcli.io.envmap import texel_solid_angles, uv_to_direction
 from relightcli.render.camera import render_pixel_geometry
@@ -60,8 +60,7 @@ def test_a_coarse_smooth_ball_under_a_low_sun_has_no_facets_at_its_terminator():
 def test_lifted_rays_keep_a_cast_shadow_and_its_umbra_black():
     # A floor under a floating square, a sun low in +X+Z; the floor and the square are flat
     # (shading normal = geometric normal): nothing is lifted, the umbra stays exactly black
-    scene = Scene(*merge(quad(-4.0, 4.0, -4.0, 4.0, 0.0), quad(-0.5, 0.5, -0.5, 0.5, 1.0)))
-    hits = render_pixel_geometry(scene, (-4.0, 4.0, -4.0, 4.0), (64, 64))
+    scene, hits = floor_under_a_square(64)
     height, row, col = 128, 40, 224
     light = EnvironmentLight(one_hot_map(height, row, col, 50.0))
     plain = shade_environment(scene, hits, light, spp=8, lift=0.0)
