@@ -18,7 +18,7 @@ from relightcli.io.envmap import (
     texel_solid_angles,
     uv_to_direction,
 )
-from relightcli.render.sampling import search_cdf
+from relightcli.render.sampling import guide_table, search_cdf
 
 # Share of the energy in the brightest 0.1% of texels above which a map is "one sun disc"
 SUN_ENERGY_FRACTION = 0.999
@@ -76,6 +76,8 @@ class EnvironmentLight:
         self._lit_row, self._lit_col = (a.astype(np.int32) for a in np.divmod(self._lit, width))
         self._lit_pdf_uv = self.texel_pdf_uv.ravel()[self._lit]
         self._lit_radiance = self.radiance.reshape(-1, 3)[self._lit]
+        self._guide = None  # search_cdf's guide over _cdf, built on the first sample
+        self._lit_cone = None
         flat = self.radiance.reshape(-1, 3)
         spread = flat.max(axis=0) - flat.min(axis=0)
         self.is_constant = bool(np.all(spread <= CONSTANT_TOLERANCE * np.maximum(flat.max(axis=0), 1e-30)))
@@ -111,6 +113,25 @@ class EnvironmentLight:
         sky = np.where(in_sun[..., None], np.float32(0.0), self.radiance)
         return EnvironmentLight(sun), EnvironmentLight(sky)
 
+    def lit_cone(self):
+        """(axis (3,) float64 unit, half-angle in radians) of a cone that holds every direction
+        of every lit texel (texel extents included); half-angle pi where the lit texels do not
+        fit a cone narrower than a hemisphere. A sun: its disc's few texels, a degree or two."""
+        if self._lit_cone is None:
+            height, width, _ = self.radiance.shape
+            centres = uv_to_direction((self._lit_col + 0.5) / width, (self._lit_row + 0.5) / height)
+            axis = centres.sum(axis=0)
+            length = np.linalg.norm(axis)
+            if self.is_black or length <= 1e-9 * centres.shape[0]:
+                self._lit_cone = (np.array([0.0, 1.0, 0.0]), np.pi)
+            else:
+                axis = axis / length
+                # a texel's points lie within (pi / height) of its centre (half its diagonal is
+                # at most 0.71 of that); the margin also covers float32 sample directions
+                half = float(np.arccos(np.clip(centres @ axis, -1.0, 1.0)).max()) + np.pi / height + 1e-3
+                self._lit_cone = (axis, half if half < 0.5 * np.pi else np.pi)
+        return self._lit_cone
+
     @property
     def shape(self):
         return self.radiance.shape
@@ -133,7 +154,9 @@ class EnvironmentLight:
         u = np.asarray(u, dtype=np.float64)
         height, width, _ = self.radiance.shape
         u0 = np.minimum(u[..., 0], np.nextafter(1.0, 0.0))
-        k = np.clip(search_cdf(self._cdf, u0), 0, self._lit.size - 1)
+        if self._guide is None:
+            self._guide = guide_table(self._cdf)
+        k = np.clip(search_cdf(self._cdf, u0, self._guide), 0, self._lit.size - 1)
         lo = self._cdf[k]
         span = self._cdf[k + 1] - lo
         offset = np.clip((u0 - lo) / np.where(span > 0, span, 1.0), 0.0, 1.0)

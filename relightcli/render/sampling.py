@@ -73,16 +73,35 @@ def invert_uniform_sphere_sample(w):
     return np.stack([u0, u1], axis=-1)
 
 
-def search_cdf(cdf, keys):
+def search_cdf(cdf, keys, guide=None):
     """Index o with cdf[o] <= key < cdf[o + 1] for every key (searchsorted, side "right",
     minus one). Keys are sorted first: a binary search over a large table runs several times
-    faster when consecutive keys fall close together (cache)."""
+    faster when consecutive keys fall close together (cache).
+
+    guide: `guide_table(cdf)`, the answer at the start of each of its equal buckets of [0, 1]:
+    a key whose segment begins before its bucket does (most keys, where the cdf's segments
+    are wider than the buckets: a sun's texels) is answered by one lookup, checked exactly
+    against the cdf; only the others are searched. The same indices, ~5x faster for a sun."""
     keys = np.asarray(keys, dtype=np.float64)
     flat = keys.ravel()
+    if guide is not None:
+        buckets = guide.size - 1
+        found = np.take(guide, np.clip(flat * buckets, 0, buckets - 1).astype(np.int64)).astype(np.int64)
+        searched = np.flatnonzero((np.take(cdf, found) > flat) | (np.take(cdf, found + 1) <= flat))
+        if searched.size:
+            found[searched] = search_cdf(cdf, flat[searched])
+        return found.reshape(keys.shape)
     order = np.argsort(flat)
     found = np.empty(flat.size, dtype=np.int64)
     found[order] = np.searchsorted(cdf, flat[order], side="right") - 1
     return found.reshape(keys.shape)
+
+
+def guide_table(cdf) -> np.ndarray:
+    """(n + 1,) int32 for a cdf (n + 1,) from 0 to 1: `search_cdf(cdf, b / n)` for b = 0..n,
+    the guide of search_cdf (a guide table over n equal buckets, Chen and Asau 1974)."""
+    n = cdf.size - 1
+    return (np.searchsorted(cdf, np.arange(n + 1) / n, side="right") - 1).astype(np.int32)
 
 
 # ---------------------------------------------------------------- piecewise constant 1D

@@ -138,3 +138,21 @@ def test_piecewise_2d_pdf_integrates_to_one(name):
 def test_piecewise_rejects_negative_values():
     with pytest.raises(ValueError):
         s.build_piecewise_constant_2d(np.array([[1.0, -1.0]]))
+
+
+@pytest.mark.parametrize("name", ["sun", "sky", "zero_bins", "one_bin"])
+def test_guided_search_finds_what_the_binary_search_finds(name):
+    rng = np.random.default_rng(7)
+    func = {"sun": np.r_[np.full(500, 1e-6), 1e6, 3e5, np.full(500, 1e-6)],
+            "sky": rng.random(20_000) ** 8,  # many dim bins: most keys need the search
+            "zero_bins": np.r_[0.0, 0.0, 1.0, 0.0, 2.0, 0.0, 0.0, 1.0, 0.0],
+            "one_bin": np.ones(1)}[name]
+    cdf = s.build_piecewise_constant_1d(func).cdf
+    keys = np.r_[rng.random(50_000), cdf, np.nextafter(cdf, 0.0), np.nextafter(cdf, 2.0), 0.0,
+                 np.nextafter(1.0, 0.0), 1.0, -0.5, 1.5]
+    guide = s.guide_table(cdf)
+    assert guide.shape == cdf.shape
+    expected = np.searchsorted(cdf, keys, side="right") - 1
+    np.testing.assert_array_equal(s.search_cdf(cdf, keys, guide), expected)
+    np.testing.assert_array_equal(s.search_cdf(cdf, keys), expected)
+    np.testing.assert_array_equal(s.search_cdf(cdf, keys.reshape(-1, 1), guide), expected.reshape(-1, 1))
