@@ -3,6 +3,7 @@
     python bench/bench_integrator.py [--res 512] [--max-spp 1024] [--workers 2] [--quick]
                                      [--strategies mis,...] [--mitsuba]
     python bench/bench_integrator.py --headline     # the 1 s / 2% target and the scaling
+    python bench/bench_integrator.py --throughput   # Mrays/s against raw embreex, same rays
 
 --mitsuba adds Mitsuba 3 (bench-only: `pip install mitsuba==3.6.4`; LLVM variant, all cores)
 on the same job in the same run, rendered by Mitsuba itself (`mi.render`, see MitsubaJob):
@@ -121,6 +122,55 @@ def raw_embree_rate(scene, geometry, rays=2_000_000):
         rates[threads] = rays / (time.perf_counter() - start) / 1e6
         tracer.close()
     return rates
+
+
+def same_rays_rates(scene, geometry, light, spp=64, repeats=3):
+    """(integrator Mrays/s, raw embreex Mrays/s on exactly the rays it traced), one process:
+    the render's occlusion batches are recorded in one render, replayed on a fresh tracer in
+    the same batches, and the integrator is timed on renders that record nothing (the same
+    seed traces the same rays). Medians of `repeats`."""
+    batches = []
+    traced = scene.occluded
+
+    def recording(origins, directions, tmax=None):
+        batches.append((np.array(origins, np.float32), np.array(directions, np.float32), tmax))
+        return traced(origins, directions, tmax)
+
+    scene.occluded = recording
+    try:
+        shade_environment(scene, geometry, light, spp=spp, seed=1)
+    finally:
+        del scene.occluded
+    rays = sum(o.shape[0] for o, _, _ in batches)
+    tracer = Scene(scene.vertices, scene.faces, threads=1)
+    tracer.warm_up()
+    ours, raw = [], []
+    for _ in range(repeats):
+        result = shade_environment(scene, geometry, light, spp=spp, seed=1)
+        assert result.rays == rays
+        ours.append(result.rays / result.seconds / 1e6)
+        start = time.perf_counter()
+        for origins, directions, tmax in batches:
+            tracer.occluded(origins, directions, tmax)
+        raw.append(rays / (time.perf_counter() - start) / 1e6)
+    tracer.close()
+    return float(np.median(ours)), float(np.median(raw))
+
+
+def throughput(args):
+    """Mrays/s of the integrator (one process, 64 spp) against raw embreex on the same rays
+    and on cosine rays from the visible surface (raw_embree_rate)."""
+    scene, triangles = build_scene(1)
+    geometry = render_pixel_geometry(scene, default_rect(scene), (args.res, args.res))
+    for hdr_name, hdr_file in HDRS.items():
+        light = EnvironmentLight(load_hdr(hdr_file))
+        light.sun_and_sky()
+        shade_environment(scene, geometry, light, spp=8, seed=1)  # warm
+        ours, raw = same_rays_rates(scene, geometry, light)
+        print(f"{hdr_name}: integrator {ours:.2f} Mrays/s, raw embreex on the same rays {raw:.2f} "
+              f"({ours / raw:.0%})")
+    rates = raw_embree_rate(scene, geometry)
+    print(f"raw embreex on cosine rays from the visible surface: {rates[1]:.2f} Mrays/s on 1 process")
 
 
 def run(args):
@@ -404,12 +454,16 @@ def main():
                         help="--headline: as many masked pixels as this share of --res x --res")
     parser.add_argument("--headline", action="store_true",
                         help="only the 1 s / 2%% target on the hard sun, and the scaling")
+    parser.add_argument("--throughput", action="store_true",
+                        help="only Mrays/s against raw embreex on the same rays (one process)")
     args = parser.parse_args()
     args.strategies = tuple(args.strategies.split(","))
     if args.quick:
         args.res, args.max_spp = 128, 64
     if args.headline:
         headline(args)
+    elif args.throughput:
+        throughput(args)
     else:
         run(args)
 
