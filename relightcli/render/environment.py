@@ -77,7 +77,6 @@ class EnvironmentLight:
         self._lit_pdf_uv = self.texel_pdf_uv.ravel()[self._lit]
         self._lit_radiance = self.radiance.reshape(-1, 3)[self._lit]
         self._guide = None  # search_cdf's guide over _cdf, built on the first sample
-        self._lit_cone = None
         flat = self.radiance.reshape(-1, 3)
         spread = flat.max(axis=0) - flat.min(axis=0)
         self.is_constant = bool(np.all(spread <= CONSTANT_TOLERANCE * np.maximum(flat.max(axis=0), 1e-30)))
@@ -112,25 +111,6 @@ class EnvironmentLight:
         sun = np.where(in_sun[..., None], self.radiance, np.float32(0.0))
         sky = np.where(in_sun[..., None], np.float32(0.0), self.radiance)
         return EnvironmentLight(sun), EnvironmentLight(sky)
-
-    def lit_cone(self):
-        """(axis (3,) float64 unit, half-angle in radians) of a cone that holds every direction
-        of every lit texel (texel extents included); half-angle pi where the lit texels do not
-        fit a cone narrower than a hemisphere. A sun: its disc's few texels, a degree or two."""
-        if self._lit_cone is None:
-            height, width, _ = self.radiance.shape
-            centres = uv_to_direction((self._lit_col + 0.5) / width, (self._lit_row + 0.5) / height)
-            axis = centres.sum(axis=0)
-            length = np.linalg.norm(axis)
-            if self.is_black or length <= 1e-9 * centres.shape[0]:
-                self._lit_cone = (np.array([0.0, 1.0, 0.0]), np.pi)
-            else:
-                axis = axis / length
-                # a texel's points lie within (pi / height) of its centre (half its diagonal is
-                # at most 0.71 of that); the margin also covers float32 sample directions
-                half = float(np.arccos(np.clip(centres @ axis, -1.0, 1.0)).max()) + np.pi / height + 1e-3
-                self._lit_cone = (axis, half if half < 0.5 * np.pi else np.pi)
-        return self._lit_cone
 
     @property
     def shape(self):

@@ -83,19 +83,6 @@ def lifted_origins(scene: Scene, points, n, g, lift: float):
     return origins + (lift * scene.edge_length * tilt)[:, None] * n, n
 
 
-def facing(light: EnvironmentLight, n, g):
-    """(N,) bool: the points with shading normals n and horizon normals g (`visible`'s g) for
-    which some direction of the light's lit texels is above both (`lit_cone`); None where that
-    is every point. The others get exactly 0 from the light (no cosine, or below the
-    surface): a sun behind a point need not be sampled there."""
-    axis, half = light.lit_cone()
-    if half >= 0.5 * np.pi:
-        return None
-    below = -np.sin(half)
-    reach = (np.asarray(n, np.float64) @ axis > below) & (np.asarray(g, np.float64) @ axis > below)
-    return None if reach.all() else reach
-
-
 def visible(scene: Scene, origins, g, directions, active, max_distance=None):
     """(N,) bool: unoccluded rays, traced only where `active`; rays below the surface (g.w <=
     0, g the geometric normal, or the shading normal for lifted origins: lifted_origins) are

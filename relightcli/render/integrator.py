@@ -29,7 +29,6 @@ from relightcli.render.estimators import (
     DIMENSIONS,
     RAYS_PER_SAMPLE,
     direct_lighting,
-    facing,
     indirect_lighting,
     lifted_origins,
 )
@@ -257,8 +256,6 @@ class _Run:
         # Tabulated unoccluded shading for the control-variate terms, once per pixel
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
                            for light, strategy in plan.terms]
-        # The pixels each term's light can reach (a sun: those that face it), None for all
-        self.facing = [facing(light, self.normals, self.horizon) for light, _ in plan.terms]
         self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
         # The mask's bounding box, grown by the pooling radius: where stopping_error filters
         rows, cols = np.divmod(pixels, geometry.mask.shape[1])
@@ -316,7 +313,7 @@ class _Run:
         """The rows `rows` of a per-pixel array, once per pass, pass-major: one gather and
         copies of it (gathering every copy cost ~3x as much)."""
         chosen = per_pixel if rows.size == self.pixel_count else np.take(per_pixel, rows, axis=0)
-        return np.tile(chosen, (passes,) + (1,) * (chosen.ndim - 1))
+        return np.tile(chosen, (passes, 1))
 
     def values(self, first_pass, passes, rows):
         """(passes, len(rows), 3) float64 pass values for the pixels `rows`."""
@@ -324,18 +321,11 @@ class _Run:
         p, n, g = (self.repeat(a, rows, passes) for a in (self.origins, self.normals, self.horizon))
         value = np.zeros((passes * rows.size, 3))
         d = 0
-        for (light, strategy), unoccluded, reach in zip(self.plan.terms, self.unoccluded, self.facing):
+        for (light, strategy), unoccluded in zip(self.plan.terms, self.unoccluded):
             k = DIMENSIONS[strategy]
-            if unoccluded is not None:
-                unoccluded = self.repeat(unoccluded, rows, passes)
-            if reach is None:
-                value += direct_lighting(self.scene, light, p, n, g, u[:, d:d + k], strategy,
-                                         self.max_distance, unoccluded)
-            else:  # the rest get exactly 0 from this light (a sun behind them): not sampled
-                at = np.flatnonzero(self.repeat(reach, rows, passes))
-                value[at] += direct_lighting(
-                    self.scene, light, *(np.take(a, at, axis=0) for a in (p, n, g, u[:, d:d + k])),
-                    strategy, self.max_distance, None if unoccluded is None else np.take(unoccluded, at, axis=0))
+            value += direct_lighting(self.scene, light, p, n, g, u[:, d:d + k], strategy,
+                                     self.max_distance,
+                                     None if unoccluded is None else self.repeat(unoccluded, rows, passes))
             d += k
         if self.bounces == 2:
             value += indirect_lighting(self.scene, self.plan.light, p, n, g,

@@ -217,27 +217,3 @@ def test_float32_sampling_picks_the_same_texels(name):
     radiance_eval, pdf_eval = light.eval_pdf(d32)
     np.testing.assert_array_equal(radiance_eval, radiance32)
     np.testing.assert_allclose(pdf_eval, pdf64, rtol=32 * np.finfo(np.float32).eps)
-
-
-LIT_CONES = {"one_hot": _one_hot, "pole_texel": lambda: _one_hot(8, 7, 15, 5.0),
-             "sun": lambda: EnvironmentLight(_real()).sun_and_sky()[0].radiance,
-             "two_suns": lambda: _one_hot() + _one_hot(16, 10, 25)}  # opposite directions
-
-
-@pytest.mark.parametrize("name", sorted(LIT_CONES))
-def test_the_lit_cone_holds_every_sampled_direction(name):
-    light = EnvironmentLight(LIT_CONES[name]())
-    axis, half = light.lit_cone()
-    if name == "two_suns":  # no cone narrower than a hemisphere holds both
-        assert half == np.pi
-        return
-    assert half < max(0.2, 2.0 * np.pi / light.shape[0])  # a sun: a few degrees; or a texel
-    for dtype in (np.float64, np.float32):
-        directions, _, _ = light.sample_radiance(np.random.default_rng(1).random((20_000, 2)), dtype)
-        angle = np.arccos(np.clip(directions.astype(np.float64) @ axis, -1.0, 1.0))
-        assert angle.max() <= half
-
-
-def test_wide_and_black_maps_have_no_narrow_lit_cone():
-    assert EnvironmentLight(_sun_and_sky()).lit_cone()[1] == np.pi  # the sky is lit too
-    assert EnvironmentLight(np.zeros((4, 8, 3), np.float32)).lit_cone()[1] == np.pi

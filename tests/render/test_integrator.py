@@ -285,33 +285,6 @@ def test_sunny_map_samples_sun_and_sky_apart():
     assert result.strategy == "sun+mis-cv"
 
 
-@pytest.mark.parametrize("lift", [0.0, 1.0])
-def test_pixels_facing_away_from_the_sun_are_not_sampled_and_lose_nothing(lift, monkeypatch):
-    import relightcli.render.integrator as integrator
-
-    scene, geometry = _body_like_scene()
-    env = _sky_gradient()
-    env[9, 20:22] = 3e5  # a two-texel sun (the brightest 0.1%): behind the floor, over the ball
-    light = EnvironmentLight(env)
-    sun = light.sun_and_sky()[0]
-    run = integrator._Run(scene, geometry, integrator.plan_lighting(light, "mis"),
-                          np.flatnonzero(geometry.mask.ravel()), 1, 1.0, None, "sobol", 0, 8, lift)
-    facing = run.facing[0]
-    assert run.plan.terms[0][0] is sun and run.facing[1] is None  # the sky reaches every pixel
-    assert 0 < facing.sum() < facing.size / 2  # the floor faces away, part of the ball faces it
-    # every pixel, sampled: those left out get exactly nothing from the sun
-    rows = np.arange(run.pixel_count)
-    p, n, g = (run.repeat(a, rows, 8) for a in (run.origins, run.normals, run.horizon))
-    u = run.uniforms("direct", 0, 8, rows)[:, :2]
-    from_sun = integrator.direct_lighting(scene, sun, p, n, g, u, "env").reshape(8, -1, 3)
-    assert not from_sun[:, ~facing].any() and from_sun[:, facing].any()
-    skipped = shade_environment(scene, geometry, light, spp=8, seed=0, lift=lift)
-    monkeypatch.setattr(integrator, "facing", lambda light, n, g: None)
-    every = shade_environment(scene, geometry, light, spp=8, seed=0, lift=lift)
-    np.testing.assert_array_equal(skipped.mean, every.mean)
-    np.testing.assert_array_equal(skipped.stderr, every.stderr)
-
-
 # ------------------------------------------------------------------ control variate
 def _sky_gradient(height=32):
     """A smooth, non-constant sky: bright above, dim below, warmer toward +X."""
