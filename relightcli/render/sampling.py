@@ -78,10 +78,11 @@ def search_cdf(cdf, keys, guide=None):
     minus one). Keys are sorted first: a binary search over a large table runs several times
     faster when consecutive keys fall close together (cache).
 
-    guide: `guide_table(cdf)`, the answer at the start of each of its equal buckets of [0, 1]:
-    a key whose segment begins before its bucket does (most keys, where the cdf's segments
-    are wider than the buckets: a sun's texels) is answered by one lookup, checked exactly
-    against the cdf; only the others are searched. The same indices, ~5x faster for a sun."""
+    guide: `guide_table(cdf)`, the answer at the start of each of its equal buckets of [0, 1].
+    A key takes its bucket's entry, checked exactly against the cdf; it is right unless a
+    segment starts between the bucket's start and the key (rare where the segments are wider
+    than the buckets: a sun's texels), and only those keys are searched. The same indices;
+    400k keys: a sun's 39 -> 10 ms, a 1k sky's 52 -> 37 ms."""
     keys = np.asarray(keys, dtype=np.float64)
     flat = keys.ravel()
     if guide is not None:
