@@ -8,7 +8,9 @@ PSNR, on sRGB-encoded values clipped to [0, 1]. Shading is first divided, predic
 truth alike, by one per-scene constant: the 95th percentile of the ground-truth shading over the
 mask (RGB pooled) divided by 0.8, so that bright shading is not hidden by the clip. With
 `gt_normal.exr`, also the mean angle between the predicted (the geometry stage's, camera frame)
-and the true normals over the mask.
+and the true normals over the mask. Relit, albedo and shading are scored as the product gives
+them: straight layers times the mask (the predicted one, or the true one with --use-gt-mask)
+once, the relit person over black.
 """
 
 from __future__ import annotations

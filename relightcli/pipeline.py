@@ -239,11 +239,13 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
 
 def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, models=None) -> dict:
     """For `relight eval`: relit, albedo, shading (full frame, linear) and the geometry stage's
-    normals (full frame, zero off the person) of a scene folder."""
+    normals (full frame, zero off the person) of a scene folder; relit, albedo and shading as
+    the product gives them, the mask applied once (the relit person over black, the layer
+    files)."""
     from relightcli.compose import paste_back
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
-    from relightcli.stages import layer_image
+    from relightcli.stages import layer_image, over_black
 
     image = read_image(scene.input_path, max_pixels=options.max_pixels)
     _check_usable_size(image, scene.input_path)
@@ -252,8 +254,8 @@ def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, 
     frame, _ = run_stages(image.rgb, mask, env, options, ItemReport(str(scene.folder)), models)
     height, width = image.rgb.shape[:2]
     return {
-        "relit": frame.relit,
-        "albedo": paste_back(frame.albedo, frame.box, height, width),
+        "relit": over_black(frame.relit, frame.mask),
+        "albedo": layer_image("albedo", frame, options)[0],
         "shading": layer_image("shading", frame, options)[0],
         "normal": None if frame.normal is None else paste_back(frame.normal, frame.box, height, width),
     }

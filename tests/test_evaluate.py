@@ -155,3 +155,26 @@ def test_normal_error_is_the_mean_angle_over_the_mask_where_both_give_a_normal()
     assert found["covered"] == 0.75
     assert abs(found["deg"] - 45.0 / 3) < 1e-4
     assert normal_metrics(np.zeros_like(pred), truth, mask) == {"deg": None, "covered": 0.0}
+
+
+def test_eval_scores_the_layers_the_product_writes(tmp_path, capsys):
+    # The relit person over black and the albedo and shading files of `relight` with the same
+    # mask are exactly what the eval scores: straight layers times the mask, once
+    import json
+
+    from relightcli.cli import main
+    from relightcli.io.images import read_image
+    from relightcli.pipeline import RelightOptions, predict_scene
+
+    folder = make_scene(tmp_path / "a", seed=3)
+    out = tmp_path / "out" / "a.exr"
+    code = main([str(folder / "input.png"), "--hdr", str(folder / "target.hdr"), "--mask", str(folder / "gt_mask.png"),
+                 "--method", "sh9", "--background", "#000000", "--outputs", "relit,albedo,shading",
+                 "-o", str(out), "--json"])
+    report = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, report["error"]
+    predicted = predict_scene(load_scene(folder), RelightOptions(method="sh9"), use_gt_mask=True)
+    for layer in ("relit", "albedo", "shading"):
+        written = read_image(report["outputs"][layer]).rgb
+        np.testing.assert_allclose(predicted[layer], written, rtol=2e-3, atol=1e-6, err_msg=layer)
+        assert written[load_scene(folder).mask == 0].max() == 0  # black off the person

@@ -14,7 +14,7 @@ from relightcli.nets.blaze import Detection
 from relightcli.nets.geometry import GeometryMaps
 from relightcli.nets.pose import Pose
 from relightcli.pipeline import RelightOptions, plan_stages, run_stages
-from relightcli.stages import Models
+from relightcli.stages import Models, layer_image
 
 
 def plan(outputs, method="raytrace", has_alpha=True, albedo="ratio"):
@@ -179,6 +179,24 @@ def test_sh_relit_under_constant_light_is_albedo_times_light(method):
     np.testing.assert_allclose(frame.relit[inner], np.broadcast_to([1.0, 0.5, 0.25], (inner.sum(), 3)), rtol=2e-3)
     assert frame.relit[~inside].max() <= 1.0 and np.isfinite(frame.relit).all()
     assert models.used.count("geometry") == 1 and "ao" not in models.used  # no AO net for SH
+
+
+def test_a_soft_mask_is_applied_once_and_does_not_darken_the_layers():
+    # A mask of 0.8 over the person (a segmentation that is unsure) relights the person as a
+    # mask of 1 does: the layers are straight, the relit composite takes 0.8 of it once
+    image, mask = photo_with_person()
+    env = np.full((16, 32, 3), [2.0, 1.0, 0.5], np.float32)
+    options = RelightOptions(outputs=("relit", "albedo"), method="sh9", resolution=32, albedo="ratio")
+    hard, _ = run_stages(image, mask, env, options, ItemReport("x"), StandInModels(albedo=0.5))
+    soft, _ = run_stages(image, 0.8 * mask, env, options, ItemReport("x"), StandInModels(albedo=0.5))
+    inner = np.zeros(mask.shape, bool)
+    inner[24:76, 29:46] = True
+    np.testing.assert_allclose(soft.relit[inner], hard.relit[inner], rtol=1e-4)
+    np.testing.assert_allclose(soft.relit[inner], np.broadcast_to([1.0, 0.5, 0.25], (inner.sum(), 3)), rtol=2e-3)
+    rgb, _ = layer_image("relit", soft, RelightOptions(outputs=("relit",), background="#000000"), hdr=True)[:2]
+    np.testing.assert_allclose(rgb[inner], 0.8 * soft.relit[inner], rtol=1e-4)
+    albedo = layer_image("albedo", soft, options)[0]
+    np.testing.assert_allclose(albedo[inner], 0.8 * 0.5, rtol=2e-3)  # over black, as the file
 
 
 @pytest.mark.parametrize("source", ["solve", "ratio", "net"])
