@@ -151,12 +151,15 @@ def stage_people(frame: Frame, options, models: Models) -> None:
     (relightcli.nets.pose), on the photo as sRGB. When the detector finds nobody and the input
     brings a mask, the landmark net looks in the mask's box (find_person_in_mask: BlazePose's
     detector misses some people its landmark net sees, e.g. T-posed synthetic figures, or a
-    visor that hides the face). When no body is found but the face detector
-    and face mesh find a face in the whole photo (a close portrait: head and shoulders), the
-    selfie segmentation gives that person's mask. The report lists who was found, who the
-    landmark net turned down, and the portrait fallback when it ran."""
+    visor that hides the face). Without a mask it looks at the whole photo instead
+    (find_person_in_photo): the detector missed the T-posed figures of 25 of the 170 synthetic
+    validation photos (data/evalval512, data/evalval256), 22 are found so (the net's mask
+    against the true one: IoU 0.67-0.95, mean 0.87), and so is Aldrin behind his gold visor.
+    When no body is found but the face detector and face mesh find a face in the whole photo (a
+    close portrait: head and shoulders), the selfie segmentation gives that person's mask. The
+    report lists who was found, who the landmark net turned down, and the fallbacks that ran."""
     from relightcli.nets.face_mesh import find_face
-    from relightcli.nets.pose import find_people, find_person_in_mask
+    from relightcli.nets.pose import WHOLE_PHOTO_PRESENCE, find_people, find_person_in_mask, find_person_in_photo
 
     frame.view = frame.view or PerceptionView.of(frame.image)
     srgb, scale = frame.view.image, frame.view.scale
@@ -177,6 +180,13 @@ def stage_people(frame: Frame, options, models: Models) -> None:
         else:  # the portrait's selfie mask would only stand in for the input's
             frame.notes["people"]["portrait"] = "no body found; the input brings the mask"
         return
+    person = find_person_in_photo(srgb, models.get("pose_landmarks"))
+    if person.pose.presence >= WHOLE_PHOTO_PRESENCE:
+        frame.people = [person]
+        frame.notes["people"]["found"] = [person.summary(scale)]
+        frame.notes["people"]["whole_photo"] = "no person detected: landmarks in the whole photo"
+        return
+    frame.notes["people"]["whole_photo"] = f"no person detected; presence {person.pose.presence:.3f} in the whole photo"
     face, why = find_face(srgb, None, models.get("face_detector"), models.get("face_mesh"))
     if face is None:
         frame.notes["people"]["portrait"] = f"no body and no face: {why}"

@@ -14,7 +14,7 @@ import pytest
 from relightcli.cli import main
 from relightcli.io.envmap import load_envmap
 from relightcli.io.images import write_image
-from relightcli.nets.pose import PersonDetector, PoseLandmarker, find_people
+from relightcli.nets.pose import WHOLE_PHOTO_PRESENCE, PersonDetector, PoseLandmarker, find_people
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parent / "data"
@@ -95,6 +95,21 @@ def test_a_tpose_keeps_both_hands(nets):
     cols, true_cols = np.flatnonzero(mask.any(axis=0)), np.flatnonzero(true_mask.any(axis=0))
     span = true_cols[-1] - true_cols[0]
     assert abs(cols[0] - true_cols[0]) <= 0.05 * span and abs(cols[-1] - true_cols[-1]) <= 0.05 * span
+
+
+def test_a_person_the_detector_misses_is_found_in_the_whole_photo(nets, tmp_path, capsys):
+    """BlazePose's detector finds nobody in this T-posed render; the landmark net shown the
+    whole photo finds the person, and the mask follows its segmentation."""
+    photo = DATA / "tpose_workshop_render.png"
+    assert not [p for p in find_people(srgb(photo), *nets) if p.found]
+    code = main([str(photo), "--hdr", str(HDR), "-o", str(tmp_path / "out.png"), "--outputs", "mask", "--json"])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, item["error"]
+    people = item["stages"]["people"]
+    assert people["whole_photo"].startswith("no person detected:") and len(people["found"]) == 1
+    assert people["found"][0]["presence"] >= WHOLE_PHOTO_PRESENCE
+    mask = cv2.imread(str(tmp_path / "out_mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert iou(mask, truth(DATA / "tpose_workshop_render_mask.png")) > 0.85
 
 
 def test_a_photo_without_a_person_fails_and_writes_nothing(tmp_path, capsys):

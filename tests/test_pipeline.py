@@ -3,6 +3,8 @@ networks whose outputs are known, so results can be checked analytically."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -267,10 +269,32 @@ def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody():
     first = rects[0]
     assert first.centre == pytest.approx((37.5, 50.0)) and first.rotation == pytest.approx(0.0, abs=1e-9)
     assert first.width == pytest.approx(75.0) and first.height == pytest.approx(75.0)
-    # no mask, no detection: nobody (the portrait fallback finds no face either)
+
+
+@pytest.mark.parametrize("presence, found", [(0.999, True), (0.99, False)])
+def test_without_a_mask_the_landmarks_look_at_the_whole_photo_when_the_detector_finds_nobody(presence, found):
+    from relightcli.nets.pose import WHOLE_PHOTO_PRESENCE
+    from relightcli.stages import Frame, stage_people
+
+    class Undetected(StandInModels):
+        def detect(self, image, rect=None):
+            return []
+
+    models = Undetected()
+    models.people_disc = (37.0, 50.0, 20.0)
+    rects, landmarks = [], models.landmarks
+    models.landmarks = lambda image, rect: rects.append(rect) or replace(landmarks(image, rect), presence=presence)
+    image, _ = photo_with_person()  # 90 rows, 70 columns
     frame = Frame(image=image, mask=None, env=None)
     stage_people(frame, None, models)
-    assert frame.people == [] and "from_mask" not in frame.notes["people"]
+    # the first landmark crop is the whole photo: centred, upright, 1.25 x its larger side
+    assert rects[0].centre == pytest.approx((35.0, 45.0)) and rects[0].width == pytest.approx(112.5)
+    assert (presence >= WHOLE_PHOTO_PRESENCE) == found
+    if found:
+        assert len(frame.people) == 1 and frame.notes["people"]["whole_photo"].startswith("no person detected:")
+    else:  # the net is not sure enough, and the portrait fallback finds no face either: nobody
+        assert frame.people == [] and "0.990" in frame.notes["people"]["whole_photo"]
+        assert "no body and no face" in frame.notes["people"]["portrait"]
 
 
 def test_the_peoples_mask_is_snapped_to_the_photos_edges():
