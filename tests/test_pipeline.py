@@ -249,17 +249,29 @@ def test_people_and_mask_stages_run_only_without_alpha(monkeypatch):
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
 
 
+class Undetected(StandInModels):
+    """A person the detector misses, whom the landmark net sees (at `presence`) in any crop;
+    `rects` records the crops it was shown."""
+
+    people_disc = (37.0, 50.0, 20.0)
+
+    def __init__(self, presence=1.0):
+        super().__init__()
+        self.presence, self.rects = presence, []
+
+    def detect(self, image, rect=None):
+        return []
+
+    def landmarks(self, image, rect):
+        self.rects.append(rect)
+        return replace(super().landmarks(image, rect), presence=self.presence)
+
+
 def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody():
     from relightcli.stages import Frame, stage_people
 
-    class Undetected(StandInModels):
-        def detect(self, image, rect=None):
-            return []
-
     models = Undetected()
-    models.people_disc = (37.0, 50.0, 20.0)
-    rects, landmarks = [], models.landmarks
-    models.landmarks = lambda image, rect: rects.append(rect) or landmarks(image, rect)
+    rects = models.rects
     image, mask = photo_with_person()  # the mask's box: columns [25, 50), rows [20, 80)
     frame = Frame(image=image, mask=mask, env=None)
     stage_people(frame, None, models)
@@ -276,14 +288,8 @@ def test_without_a_mask_the_landmarks_look_at_the_whole_photo_when_the_detector_
     from relightcli.nets.pose import WHOLE_PHOTO_PRESENCE
     from relightcli.stages import Frame, stage_people
 
-    class Undetected(StandInModels):
-        def detect(self, image, rect=None):
-            return []
-
-    models = Undetected()
-    models.people_disc = (37.0, 50.0, 20.0)
-    rects, landmarks = [], models.landmarks
-    models.landmarks = lambda image, rect: rects.append(rect) or replace(landmarks(image, rect), presence=presence)
+    models = Undetected(presence)
+    rects = models.rects
     image, _ = photo_with_person()  # 90 rows, 70 columns
     frame = Frame(image=image, mask=None, env=None)
     stage_people(frame, None, models)
