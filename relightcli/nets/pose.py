@@ -193,9 +193,9 @@ def find_person_in_photo(image: np.ndarray, landmarker: PoseLandmarker, refine: 
     """The landmark net run on the whole photo (image (h, w, 3) sRGB), for when the detector
     found nobody: BlazePose's detector finds a person by the face and misses some people (a
     gold visor over the face, T-posed synthetic figures, even seen from behind) whom the
-    landmark net, shown the whole photo, finds. A whole photo is no detector's crop: take the person only at
-    a presence of WHOLE_PHOTO_PRESENCE (over a landscape the net's presence passes MIN_PRESENCE
-    in one view of five)."""
+    landmark net, shown the whole photo, finds. A whole photo is no detector's crop: take the
+    person only at a presence of WHOLE_PHOTO_PRESENCE (over a landscape the net's presence
+    passes MIN_PRESENCE in one view of five)."""
     height, width = image.shape[:2]
     return find_person_in_mask(image, np.ones((height, width), np.float32), landmarker, refine)
 
