@@ -52,6 +52,7 @@ class Frame:
     body_maps: object | None = None  # relightcli.geometry.body_maps.BodyMaps of those bodies
     body_hits: object | None = None  # PixelGeometry: what each person pixel sees of them
     notes: dict = field(default_factory=dict)  # stage -> facts for the report
+    mask_predicted: bool = False  # the mask is the segmentations' (stage_mask), not the input's
 
     @property
     def relit(self) -> np.ndarray:
@@ -223,6 +224,7 @@ def stage_mask(frame: Frame, options, models: Models) -> None:
     snapped = compose.snap_mask(compose.crop_square(frame.image, box), compose.crop_square(frame.mask, box))
     compose.replace_in_box(frame.mask, snapped, box)
     frame.mask = np.clip(frame.mask, 0.0, 1.0)
+    frame.mask_predicted = True
     frame.notes["mask"] = {"source": source, "edges": "guided filter"}
 
 
@@ -1118,16 +1120,21 @@ def relit_image(frame: Frame, options, hdr: bool):
     """The relit person over the requested background, (rgb, alpha, srgb). EXR/HDR files keep
     the linear relit values; LDR files show them times `scene_exposure` of the target map (the
     environment view gets the same factor, so they stay consistent; a '#RRGGBB' background and
-    the kept photo are shown as they are)."""
+    the kept photo are shown as they are). Over the kept photo a predicted mask is sharpened
+    (compose.KEEP_MATTE); an input mask is used as it is."""
     mask = frame.mask
+    matte = compose.KEEP_MATTE if options.background == "keep" and frame.mask_predicted else None
     scale = 1.0 if hdr else scene_exposure(frame.env, options.exposure_ev)
     env_view = None
     if options.background == "env":
         env_view = _background_view(frame, options)
     # The environment view is made for this output only: composite over it in place.
     rgb, alpha = compose.composite_crop(frame.relit_crop, frame.box, mask, options.background,
-                                        photo=frame.image, env_view=env_view, scale=scale, out=env_view)
+                                        photo=frame.image, env_view=env_view, scale=scale, out=env_view,
+                                        matte=matte)
     frame.notes["relit"] = {"display_exposure": scale}
+    if matte is not None:
+        frame.notes["relit"]["matte"] = f"the predicted mask sharpened from {matte[0]}..{matte[1]} to 0..1"
     return rgb, alpha, True
 
 

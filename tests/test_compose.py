@@ -12,6 +12,7 @@ from relightcli.compose import (
     snap_mask,
     CropBox,
     composite,
+    sharpened,
     composite_crop,
     crop_square,
     display_exposure,
@@ -164,6 +165,17 @@ def test_composite_keep_uses_alpha():
     rgb, alpha = composite(relit, mask, "keep", photo=photo)
     assert alpha is None
     np.testing.assert_allclose(rgb[0, :, 0], [0.25, 1.125, 2.0])
+
+
+def test_a_matte_sharpens_the_mask_before_compositing():
+    relit = np.full((1, 5, 3), 2.0, np.float32)
+    photo = np.full((1, 5, 3), 0.25, np.float32)
+    mask = np.array([[0.1, 0.2, 0.5, 0.8, 0.95]], np.float32)
+    np.testing.assert_allclose(sharpened(mask, (0.2, 0.8))[0], [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-6)
+    rgb, _ = composite(relit, mask, "keep", photo=photo, matte=(0.2, 0.8))
+    np.testing.assert_allclose(rgb[0, :, 0], [0.25, 0.25, 1.125, 2.0, 2.0], atol=1e-6)
+    plain, _ = composite(relit, mask, "keep", photo=photo)  # without a matte: the mask as alpha
+    np.testing.assert_allclose(plain[0, :, 0], 2.0 * mask[0] + 0.25 * (1.0 - mask[0]), atol=1e-6)
 
 
 def test_composite_transparent_gives_straight_alpha():
