@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -240,12 +240,12 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
 def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, models=None) -> dict:
     """For `relight eval`: relit, albedo, shading (full frame, linear) and the geometry stage's
     normals (full frame, zero off the person) of a scene folder; relit, albedo and shading as
-    the product gives them, the mask applied once (the relit person over black, the layer
-    files)."""
+    the product gives them, the mask applied once: the relit output over black (a predicted
+    mask sharpened, compose.PREDICTED_MATTE) and the layer files (the mask as alpha)."""
     from relightcli.compose import paste_back
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
-    from relightcli.stages import layer_image, over_black
+    from relightcli.stages import layer_image
 
     image = read_image(scene.input_path, max_pixels=options.max_pixels)
     _check_usable_size(image, scene.input_path)
@@ -254,7 +254,7 @@ def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, 
     frame, _ = run_stages(image.rgb, mask, env, options, ItemReport(str(scene.folder)), models)
     height, width = image.rgb.shape[:2]
     return {
-        "relit": over_black(frame.relit, frame.mask),
+        "relit": layer_image("relit", frame, replace(options, background="#000000"), hdr=True)[0],
         "albedo": layer_image("albedo", frame, options)[0],
         "shading": layer_image("shading", frame, options)[0],
         "normal": None if frame.normal is None else paste_back(frame.normal, frame.box, height, width),

@@ -1120,10 +1120,10 @@ def relit_image(frame: Frame, options, hdr: bool):
     """The relit person over the requested background, (rgb, alpha, srgb). EXR/HDR files keep
     the linear relit values; LDR files show them times `scene_exposure` of the target map (the
     environment view gets the same factor, so they stay consistent; a '#RRGGBB' background and
-    the kept photo are shown as they are). Over the kept photo a predicted mask is sharpened
-    (compose.KEEP_MATTE); an input mask is used as it is."""
+    the kept photo are shown as they are). A predicted mask is sharpened into the alpha
+    (compose.PREDICTED_MATTE), over any background; an input mask is used as it is."""
     mask = frame.mask
-    matte = compose.KEEP_MATTE if options.background == "keep" and frame.mask_predicted else None
+    matte = relit_matte(frame)
     scale = 1.0 if hdr else scene_exposure(frame.env, options.exposure_ev)
     env_view = None
     if options.background == "env":
@@ -1136,6 +1136,12 @@ def relit_image(frame: Frame, options, hdr: bool):
     if matte is not None:
         frame.notes["relit"]["matte"] = f"the predicted mask sharpened from {matte[0]}..{matte[1]} to 0..1"
     return rgb, alpha, True
+
+
+def relit_matte(frame: Frame) -> tuple[float, float] | None:
+    """The matte the relit output is composited with: compose.PREDICTED_MATTE for a predicted
+    mask, None (the mask as alpha) for the input's."""
+    return compose.PREDICTED_MATTE if frame.mask_predicted else None
 
 
 # Largest finite half float: an EXR layer with larger values is written as float32

@@ -176,6 +176,18 @@ def test_a_matte_sharpens_the_mask_before_compositing():
     np.testing.assert_allclose(rgb[0, :, 0], [0.25, 0.25, 1.125, 2.0, 2.0], atol=1e-6)
     plain, _ = composite(relit, mask, "keep", photo=photo)  # without a matte: the mask as alpha
     np.testing.assert_allclose(plain[0, :, 0], 2.0 * mask[0] + 0.25 * (1.0 - mask[0]), atol=1e-6)
+    _, alpha = composite(relit, mask, "transparent", matte=(0.2, 0.8))
+    np.testing.assert_allclose(alpha[0], [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-6)
+
+
+def test_composite_crop_gives_the_sharpened_alpha_when_transparent():
+    crop = np.full((4, 4, 3), 0.5, np.float32)
+    box = CropBox(0, 0, 4, 4)
+    mask = np.full((4, 4), 0.65, np.float32)
+    _, alpha = composite_crop(crop, box, mask, "transparent", matte=(0.2, 0.8))
+    np.testing.assert_allclose(alpha, 0.75, atol=1e-6)
+    _, alpha = composite_crop(crop, box, mask, "transparent")
+    np.testing.assert_allclose(alpha, 0.65, atol=1e-6)
 
 
 def test_composite_transparent_gives_straight_alpha():

@@ -249,17 +249,17 @@ def test_people_and_mask_stages_run_only_without_alpha(monkeypatch):
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
 
 
-def test_over_the_kept_photo_a_predicted_mask_is_sharpened_and_an_input_mask_is_not(monkeypatch):
-    # The predicted mask is a segmentation probability: over the kept photo (whose own pixels
-    # are behind the person) it is stretched from KEEP_MATTE to 0..1; a mask the user gives is
-    # an alpha matte and is used as it is, as are the predicted mask's other backgrounds
+def test_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_input_mask(monkeypatch):
+    # The predicted mask is a segmentation probability: the relit person is composited with it
+    # stretched from PREDICTED_MATTE to 0..1, over any background; a mask the user gives is an
+    # alpha matte and is used as it is. The layer files keep the mask as alpha.
     from relightcli import pipeline
-    from relightcli.compose import KEEP_MATTE, sharpened
+    from relightcli.compose import PREDICTED_MATTE, paste_back, sharpened
 
     monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     image, mask = photo_with_person()
     env = np.ones((8, 16, 3), np.float32)
-    options = RelightOptions(outputs=("relit",), method="sh9", resolution=32, albedo="ratio")
+    options = RelightOptions(outputs=("relit", "albedo"), method="sh9", resolution=32, albedo="ratio")
     models = StandInModels()
     models.people_disc = (35.0, 50.0, 20.0)
     predicted, _ = run_stages(image, None, env, options, ItemReport("x"), models)
@@ -267,14 +267,19 @@ def test_over_the_kept_photo_a_predicted_mask_is_sharpened_and_an_input_mask_is_
     assert predicted.mask_predicted and not given.mask_predicted
     soft = (predicted.mask > 0.05) & (predicted.mask < 0.95)
     assert soft.sum() > 20  # the stand-in's segmentation is blurred: a soft edge to sharpen
-    keep = RelightOptions(outputs=("relit",), background="keep")
-    for frame, alpha in ((predicted, sharpened(predicted.mask, KEEP_MATTE)), (given, predicted.mask)):
-        rgb = layer_image("relit", frame, keep, hdr=True)[0]
-        np.testing.assert_allclose(rgb, alpha[..., None] * frame.relit + (1.0 - alpha[..., None]) * image,
-                                   rtol=1e-5, atol=1e-6)
+    grey = np.float32(0.21586)  # #808080, linear
+    for frame, alpha in ((predicted, sharpened(predicted.mask, PREDICTED_MATTE)), (given, predicted.mask)):
+        a = alpha[..., None]
+        keep = layer_image("relit", frame, RelightOptions(background="keep"), hdr=True)[0]
+        np.testing.assert_allclose(keep, a * frame.relit + (1.0 - a) * image, rtol=1e-5, atol=1e-6)
         assert ("matte" in frame.notes["relit"]) == frame.mask_predicted  # the report says so
-    black = layer_image("relit", predicted, RelightOptions(outputs=("relit",), background="#000000"), hdr=True)[0]
-    np.testing.assert_allclose(black, predicted.mask[..., None] * predicted.relit, rtol=1e-5, atol=1e-6)
+        over_grey = layer_image("relit", frame, RelightOptions(background="#808080"), hdr=True)[0]
+        np.testing.assert_allclose(over_grey, a * frame.relit + (1.0 - a) * grey, rtol=1e-4, atol=1e-5)
+        rgb, transparent = layer_image("relit", frame, RelightOptions(background="transparent"), hdr=True)[:2]
+        np.testing.assert_allclose(transparent, alpha, atol=1e-6)
+        albedo = layer_image("albedo", frame, options)[0]  # the layer file: the mask as alpha
+        np.testing.assert_allclose(albedo, predicted.mask[..., None] * paste_back(
+            frame.albedo, frame.box, *image.shape[:2]), rtol=1e-5, atol=1e-6)
 
 
 class Undetected(StandInModels):
