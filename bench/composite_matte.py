@@ -11,8 +11,9 @@ composites the product writes (relightcli.compose.composite_crop, at the relit o
 exposure) in sRGB, clipped, around the people (the true and the predicted person, grown by 3
 px) and on the true person alone, over the kept photo (`--background keep`, the default), the
 environment view (`env`), black and grey, for the mask as alpha and for sharpened mattes (the
-mask stretched from low..high to 0..1, compose.PREDICTED_MATTE). The people and the mask are the
-pipeline's own (no --mask). Choose the matte here, on validation folders.
+mask stretched from low..high to 0..1, compose.PREDICTED_MATTE, used over
+stages.SHARPENED_OVER). The people and the mask are the pipeline's own (no --mask). Choose
+the matte here, on validation folders.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import linear_to_srgb, read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import Models, _background_view, scene_exposure  # noqa: E402
+from relightcli.stages import SHARPENED_OVER, Models, _background_view, scene_exposure  # noqa: E402
 
 BACKGROUNDS = ("keep", "env", "#000000", "#808080")
 
@@ -92,7 +93,7 @@ def main() -> int:
             person = np.array([r[background][name]["person"] for r in rows.values()])
             summary[background][name] = {"around": float(around.mean()), "person": float(person.mean()),
                                          "better_around": int((around > base).sum())}
-            shipped = " (shipped)" if matte == PREDICTED_MATTE else ""
+            shipped = " (shipped)" if matte == PREDICTED_MATTE and background in SHARPENED_OVER else ""
             print(f"  {name:22s} {around.mean():7.3f} ({around.mean() - base.mean():+.3f}, better in "
                   f"{(around > base).sum():3d})  {person.mean():7.3f}{shipped}")
     if args.out:

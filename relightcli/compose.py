@@ -219,18 +219,17 @@ def parse_colour(text: str) -> np.ndarray:
     return srgb_to_linear(values)
 
 
-# A predicted mask is a segmentation's probability, not an alpha matte: the relit output is
-# composited with it sharpened, PREDICTED_MATTE[0]..[1] stretched to 0..1, so the relit person is
-# opaque where the segmentation is fairly sure (the background does not show through) and the
-# unsure fringe, often background the segmentation spilled onto, is left to the background.
-# Measured against the true composite (the true relit person over the same background by the
-# true mask; `python bench/keep_composite.py DATA`, sRGB PSNR around the people), validation,
-# the 148 scenes at 256 / 19 at 512 where a person is found, 0.2..0.8 against the mask as alpha:
-# over the kept photo +0.12 / +0.09 dB, the environment view +0.39 / +0.13, black +0.65 /
-# +0.78, grey +0.09 / +0.04 (0.1..0.9 and 0.35..0.65 between +0.02 and +0.90, a 0.5 threshold
-# -0.10 to +0.70, raising the inside alone, 0..0.8, -0.39 to +0.28). Over black on the true
-# person's pixels alone (the paper's protocol, which cannot see the spill) relit PSNR -0.09 dB
-# and SSIM +0.023 at 512; the layer files keep the mask as alpha (sharpened, it cost them there)
+# A predicted mask is a segmentation's probability, not an alpha matte: the relit output over
+# the photo or the environment view is composited with it sharpened, PREDICTED_MATTE[0]..[1]
+# stretched to 0..1 (relightcli.stages.relit_matte), so the relit person is opaque where the
+# segmentation is fairly sure (the background does not show through) and the unsure fringe,
+# often background the segmentation spilled onto, is left to the background. Measured against
+# the true composite (the true relit person over the same background by the true mask; `python
+# bench/composite_matte.py DATA`, sRGB PSNR around the people), validation, the 148 scenes at
+# 256 / 19 at 512 where a person is found, 0.2..0.8 against the mask as alpha: over the kept
+# photo +0.12 / +0.09 dB, the environment view +0.39 / +0.13 (0.1..0.9 +0.09 / +0.06 and +0.25
+# / +0.09, 0.35..0.65 +0.09 / +0.08 and +0.45 / +0.09, a 0.5 threshold -0.02 / +0.01 and +0.31
+# / -0.02, raising the inside alone, 0..0.8, -0.14 / -0.12 and +0.28 / +0.04)
 PREDICTED_MATTE = (0.2, 0.8)
 
 

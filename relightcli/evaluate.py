@@ -10,8 +10,7 @@ mask (RGB pooled) divided by 0.8, so that bright shading is not hidden by the cl
 `gt_normal.exr`, also the mean angle between the predicted (the geometry stage's, camera frame)
 and the true normals over the mask. Relit, albedo and shading are scored as the product gives
 them: straight layers times the mask (the predicted one, or the true one with --use-gt-mask)
-once, the relit person over black (`relight --background '#000000'`: a predicted mask is
-sharpened for it, compose.PREDICTED_MATTE).
+once, the relit person over black (`relight --background '#000000'`).
 """
 
 from __future__ import annotations

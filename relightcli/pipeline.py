@@ -240,8 +240,8 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
 def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, models=None) -> dict:
     """For `relight eval`: relit, albedo, shading (full frame, linear) and the geometry stage's
     normals (full frame, zero off the person) of a scene folder; relit, albedo and shading as
-    the product gives them, the mask applied once: the relit output over black (a predicted
-    mask sharpened, compose.PREDICTED_MATTE) and the layer files (the mask as alpha)."""
+    the product gives them, the mask applied once as alpha: the relit output over black and the
+    layer files."""
     from relightcli.compose import paste_back
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image

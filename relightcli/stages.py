@@ -1120,10 +1120,10 @@ def relit_image(frame: Frame, options, hdr: bool):
     """The relit person over the requested background, (rgb, alpha, srgb). EXR/HDR files keep
     the linear relit values; LDR files show them times `scene_exposure` of the target map (the
     environment view gets the same factor, so they stay consistent; a '#RRGGBB' background and
-    the kept photo are shown as they are). A predicted mask is sharpened into the alpha
-    (compose.PREDICTED_MATTE), over any background; an input mask is used as it is."""
+    the kept photo are shown as they are). Over the photo or the environment view a predicted
+    mask is sharpened into the alpha (relit_matte); an input mask is used as it is."""
     mask = frame.mask
-    matte = relit_matte(frame)
+    matte = relit_matte(frame, options.background)
     scale = 1.0 if hdr else scene_exposure(frame.env, options.exposure_ev)
     env_view = None
     if options.background == "env":
@@ -1138,10 +1138,18 @@ def relit_image(frame: Frame, options, hdr: bool):
     return rgb, alpha, True
 
 
-def relit_matte(frame: Frame) -> tuple[float, float] | None:
-    """The matte the relit output is composited with: compose.PREDICTED_MATTE for a predicted
-    mask, None (the mask as alpha) for the input's."""
-    return compose.PREDICTED_MATTE if frame.mask_predicted else None
+# Backgrounds over which a predicted mask is sharpened (compose.PREDICTED_MATTE): images behind
+# the person. Over a colour (and as the transparent output's alpha) the mask stays the alpha:
+# sharpened, the relit person over black lost on the paper's protocol (the true person's pixels
+# only: relit -0.09 dB on the 20 validation scenes at 512, -0.20 on the test scenes, SSIM +0.02
+# / +0.01) while it gained around the people (black +0.65 / +0.78 dB at 256 / 512)
+SHARPENED_OVER = ("keep", "env")
+
+
+def relit_matte(frame: Frame, background: str) -> tuple[float, float] | None:
+    """The matte the relit output is composited with over `background`: compose.PREDICTED_MATTE
+    for a predicted mask over an image (SHARPENED_OVER), else None (the mask as alpha)."""
+    return compose.PREDICTED_MATTE if frame.mask_predicted and background in SHARPENED_OVER else None
 
 
 # Largest finite half float: an EXR layer with larger values is written as float32

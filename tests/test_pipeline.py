@@ -249,12 +249,14 @@ def test_people_and_mask_stages_run_only_without_alpha(monkeypatch):
     assert frame.mask.shape == image.shape[:2] and 0 < frame.mask.mean() < 1
 
 
-def test_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_input_mask(monkeypatch):
-    # The predicted mask is a segmentation probability: the relit person is composited with it
-    # stretched from PREDICTED_MATTE to 0..1, over any background; a mask the user gives is an
-    # alpha matte and is used as it is. The layer files keep the mask as alpha.
+def test_over_an_image_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_input_mask(monkeypatch):
+    # The predicted mask is a segmentation probability: over the kept photo or the environment
+    # view the relit person is composited with it stretched from PREDICTED_MATTE to 0..1; over a
+    # colour (the paper's protocol scores the relit person over black) and as the transparent
+    # output's alpha it stays the mask, as does a mask the user gives, and the layer files
     from relightcli import pipeline
     from relightcli.compose import PREDICTED_MATTE, paste_back, sharpened
+    from relightcli.stages import _background_view
 
     monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     image, mask = photo_with_person()
@@ -268,18 +270,22 @@ def test_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_input_mask(monk
     soft = (predicted.mask > 0.05) & (predicted.mask < 0.95)
     assert soft.sum() > 20  # the stand-in's segmentation is blurred: a soft edge to sharpen
     grey = np.float32(0.21586)  # #808080, linear
-    for frame, alpha in ((predicted, sharpened(predicted.mask, PREDICTED_MATTE)), (given, predicted.mask)):
-        a = alpha[..., None]
+    for frame in (predicted, given):
+        alpha = (sharpened(frame.mask, PREDICTED_MATTE) if frame.mask_predicted else frame.mask)[..., None]
         keep = layer_image("relit", frame, RelightOptions(background="keep"), hdr=True)[0]
-        np.testing.assert_allclose(keep, a * frame.relit + (1.0 - a) * image, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(keep, alpha * frame.relit + (1.0 - alpha) * image, rtol=1e-5, atol=1e-6)
         assert ("matte" in frame.notes["relit"]) == frame.mask_predicted  # the report says so
+        view = _background_view(frame, RelightOptions(background="env"))
+        over_env = layer_image("relit", frame, RelightOptions(background="env"), hdr=True)[0]
+        np.testing.assert_allclose(over_env, alpha * frame.relit + (1.0 - alpha) * view, rtol=1e-5, atol=1e-6)
+        plain = frame.mask[..., None]
         over_grey = layer_image("relit", frame, RelightOptions(background="#808080"), hdr=True)[0]
-        np.testing.assert_allclose(over_grey, a * frame.relit + (1.0 - a) * grey, rtol=1e-4, atol=1e-5)
-        rgb, transparent = layer_image("relit", frame, RelightOptions(background="transparent"), hdr=True)[:2]
-        np.testing.assert_allclose(transparent, alpha, atol=1e-6)
+        np.testing.assert_allclose(over_grey, plain * frame.relit + (1.0 - plain) * grey, rtol=1e-4, atol=1e-5)
+        transparent = layer_image("relit", frame, RelightOptions(background="transparent"), hdr=True)[1]
+        np.testing.assert_allclose(transparent, frame.mask, atol=1e-6)
         albedo = layer_image("albedo", frame, options)[0]  # the layer file: the mask as alpha
-        np.testing.assert_allclose(albedo, predicted.mask[..., None] * paste_back(
-            frame.albedo, frame.box, *image.shape[:2]), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(albedo, plain * paste_back(frame.albedo, frame.box, *image.shape[:2]),
+                                   rtol=1e-5, atol=1e-6)
 
 
 class Undetected(StandInModels):
