@@ -35,7 +35,7 @@ from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import linear_to_srgb, read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import SHARPENED_OVER, Models, _background_view, scene_exposure  # noqa: E402
+from relightcli.stages import SHARPENED_OVER, Models, background_view, scene_exposure  # noqa: E402
 
 BACKGROUNDS = ("keep", "env", "#000000", "#808080")
 
@@ -54,7 +54,7 @@ def score(folder: Path, options, models) -> dict:
     env = load_envmap(scene.target_path)
     frame, _ = run_stages(image, None, env, options, ItemReport(str(folder)), models)
     scale = np.float32(scene_exposure(env))
-    view = _background_view(frame, options)
+    view = background_view(frame, options)
     display = lambda rgb: linear_to_srgb(np.clip(rgb, 0.0, 1.0))  # noqa: E731
     person = scene.mask > 0.5
     around = cv2.dilate(((frame.mask > 0.02) | person).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0

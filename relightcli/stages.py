@@ -1127,7 +1127,7 @@ def relit_image(frame: Frame, options, hdr: bool):
     scale = 1.0 if hdr else scene_exposure(frame.env, options.exposure_ev)
     env_view = None
     if options.background == "env":
-        env_view = _background_view(frame, options)
+        env_view = background_view(frame, options)
     # The environment view is made for this output only: composite over it in place.
     rgb, alpha = compose.composite_crop(frame.relit_crop, frame.box, mask, options.background,
                                         photo=frame.image, env_view=env_view, scale=scale, out=env_view,
@@ -1162,7 +1162,7 @@ def fits_half(array: np.ndarray) -> bool:
     return all(bool(np.all(np.abs(array[rows]) <= HALF_MAX)) for rows in row_bands(array.shape[0]))
 
 
-def _background_view(frame: Frame, options) -> np.ndarray:
+def background_view(frame: Frame, options) -> np.ndarray:
     """The environment seen by a 60-degree camera, rendered at most 1024 wide (the map has no
     more detail than that) and resized to the photo."""
     import cv2

@@ -256,7 +256,7 @@ def test_over_an_image_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_i
     # output's alpha it stays the mask, as does a mask the user gives, and the layer files
     from relightcli import pipeline
     from relightcli.compose import PREDICTED_MATTE, paste_back, sharpened
-    from relightcli.stages import _background_view
+    from relightcli.stages import background_view
 
     monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     image, mask = photo_with_person()
@@ -275,7 +275,7 @@ def test_over_an_image_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_i
         keep = layer_image("relit", frame, RelightOptions(background="keep"), hdr=True)[0]
         np.testing.assert_allclose(keep, alpha * frame.relit + (1.0 - alpha) * image, rtol=1e-5, atol=1e-6)
         assert ("matte" in frame.notes["relit"]) == frame.mask_predicted  # the report says so
-        view = _background_view(frame, RelightOptions(background="env"))
+        view = background_view(frame, RelightOptions(background="env"))
         over_env = layer_image("relit", frame, RelightOptions(background="env"), hdr=True)[0]
         np.testing.assert_allclose(over_env, alpha * frame.relit + (1.0 - alpha) * view, rtol=1e-5, atol=1e-6)
         plain = frame.mask[..., None]
