@@ -1,8 +1,11 @@
 """An environment map as a light: radiance lookup and importance sampling, built once per map.
 
 Directions follow relightcli.io.envmap (the single source of truth); radiance is linear RGB,
-float32 (H, W, 3) with W = 2H. Lookups are nearest-texel, the same piecewise-constant function
-the sampling distribution is built from, so `eval / pdf` is exact per texel.
+float32 (H, W, 3) with W = 2H. Lookups are nearest-texel. The sampling distribution is
+piecewise constant over cells of cell x cell texels (1 by default: per texel, the function
+`eval` looks up, so `eval / pdf` is exact per texel), proportional to each cell's energy and
+uniform in (u, v) within it; a sky is sampled over larger cells (`sampling_cell`), whose
+small tables stay in cache.
 """
 
 from __future__ import annotations
@@ -29,6 +32,13 @@ CONSTANT_TOLERANCE = 1e-6
 # lookups are within 0.5% of the full-resolution sum on studio, sun and overcast maps (tested).
 IRRADIANCE_NODES = 128
 IRRADIANCE_TEXEL_ROWS = 64
+# A sky (no sun in it) is sampled over cells of texels, uniform in (u, v) within a cell, with
+# at least this many rows of cells: a small table the sampling's random lookups find in cache
+SAMPLING_ROWS = 128
+# Sampling's guide table (relightcli.render.sampling.guide_table): buckets per lit cell, up to
+# a size that stays in cache (2 MB)
+GUIDE_BUCKETS_PER_CELL = 16
+GUIDE_MAX_BUCKETS = 1 << 19
 
 
 def sanitize_radiance(radiance) -> np.ndarray:
@@ -51,31 +61,39 @@ def sanitize_radiance(radiance) -> np.ndarray:
 class EnvironmentLight:
     """Radiance lookup and a sampling distribution proportional to mean-RGB radiance x sin(theta).
 
-    radiance: (H, W, 3) linear RGB. The distribution over texel coordinates (u, v) folds in the
-    texel solid angle (exact per-row, proportional to sin(theta)); `pdf` converts back to
-    solid angle by dividing by 2 pi^2 sin(theta). Sampling inverts one cdf over the lit
-    texels in row-major order (u[0] picks the texel and its column offset, u[1] the row
-    offset): one search per sample, over only the sun's texels for a sun.
+    radiance: (H, W, 3) linear RGB; cell: the side of the square blocks of texels sampling
+    picks from (dividing H and W). The distribution over texel coordinates (u, v) folds in the
+    texel solid angle (exact per-row, proportional to sin(theta)), summed per cell; `pdf`
+    converts back to solid angle by dividing by 2 pi^2 sin(theta). Sampling inverts one cdf
+    over the lit cells in row-major order (u[0] picks the cell and its column offset, u[1]
+    the row offset): one search per sample, over only the sun's texels for a sun.
     """
 
-    def __init__(self, radiance):
+    def __init__(self, radiance, cell: int = 1):
         self.radiance = sanitize_radiance(radiance)
         height, width, _ = self.radiance.shape
+        if cell < 1 or height % cell or width % cell:
+            raise ValueError(f"cell must divide the map's {height}x{width} texels, got {cell}")
         energy = self.radiance.mean(axis=2).astype(np.float64) * texel_solid_angles(height, width)
         self.total_energy = float(energy.sum())
         self.is_black = self.total_energy <= 0.0
         if self.is_black:
             energy = np.ones_like(energy)  # sampling stays defined: uniform over the texels
-        # Density over (u, v) in [0, 1)^2 per texel, and the cdf over the lit texels
-        self.texel_pdf_uv = energy / energy.mean()
-        self._lit = np.flatnonzero(energy.ravel() > 0)
-        cdf = np.cumsum(energy.ravel()[self._lit])
+        # Sampling cells: blocks of cell x cell texels, uniform in (u, v) within each
+        self.cell = cell
+        rows, cols = height // cell, width // cell
+        cell_energy = energy.reshape(rows, cell, cols, cell).sum(axis=(1, 3))
+        # Density over (u, v) in [0, 1)^2 per cell, and the cdf over the lit cells
+        self.cell_pdf_uv = cell_energy / cell_energy.mean()
+        self._lit = np.flatnonzero(cell_energy.ravel() > 0)
+        cdf = np.cumsum(cell_energy.ravel()[self._lit])
         self._cdf = np.concatenate([[0.0], cdf / cdf[-1]])
         self._cdf[-1] = 1.0
-        # What sampling reads per lit texel, gathered once: row, column, density, radiance
-        self._lit_row, self._lit_col = (a.astype(np.int32) for a in np.divmod(self._lit, width))
-        self._lit_pdf_uv = self.texel_pdf_uv.ravel()[self._lit]
-        self._lit_radiance = self.radiance.reshape(-1, 3)[self._lit]
+        # What sampling reads per lit cell, gathered once: row, column, density (and radiance
+        # for single-texel cells)
+        self._lit_row, self._lit_col = (a.astype(np.int32) for a in np.divmod(self._lit, cols))
+        self._lit_pdf_uv = self.cell_pdf_uv.ravel()[self._lit]
+        self._lit_radiance = self.radiance.reshape(-1, 3)[self._lit] if cell == 1 else None
         self._guide = None  # search_cdf's guide over _cdf, built on the first sample
         flat = self.radiance.reshape(-1, 3)
         spread = flat.max(axis=0) - flat.min(axis=0)
@@ -85,14 +103,28 @@ class EnvironmentLight:
         self.is_sun_only = (not self.is_black) and self.sun_fraction >= SUN_ENERGY_FRACTION
         self._sun_and_sky = None
         self._irradiance = None
+        self._coarse = None
+        self._parent = None  # the light a coarse_sampling() copy shares its irradiance with
 
     def irradiance(self, normals) -> np.ndarray:
         """Unoccluded shading (1/pi) integral of L(w) max(0, n.w) dw (DESIGN.md units) for unit
         normals (N, 3): (N, 3) float64, bilinear in a table built on first use."""
+        if self._parent is not None:
+            return self._parent.irradiance(normals)
         if self._irradiance is None:
             self._irradiance = _irradiance_table(self.radiance, IRRADIANCE_NODES,
                                                  IRRADIANCE_TEXEL_ROWS)
         return lookup_normal_table(self._irradiance, normals)
+
+    def coarse_sampling(self):
+        """This light sampled over cells of texels (`sampling_cell`) instead of single
+        texels: the same radiance and irradiance table, a small sampling table. Cached."""
+        if self._coarse is None:
+            cell = sampling_cell(*self.radiance.shape[:2])
+            self._coarse = self if cell == self.cell else EnvironmentLight(self.radiance, cell)
+            if self._coarse is not self:
+                self._coarse._parent = self
+        return self._coarse
 
     def sun_and_sky(self):
         """`split_sun()`, computed once per light (renders of a turntable reuse it)."""
@@ -103,14 +135,15 @@ class EnvironmentLight:
     def split_sun(self, share: float = 0.001):
         """(sun, sky): two lights whose radiances sum to this one's. The sun holds the
         brightest `share` of texels by energy, the sky the rest, so each can be sampled
-        on its own: the choice between sun and sky then adds no variance."""
+        on its own: the choice between sun and sky then adds no variance. The sun is sampled
+        texel by texel, the sky over cells (`coarse_sampling`)."""
         energy = self.radiance.mean(axis=2) * texel_solid_angles(*self.radiance.shape[:2])
         count = max(1, int(round(share * energy.size)))
         threshold = np.partition(energy.ravel(), energy.size - count)[energy.size - count]
         in_sun = (energy >= threshold) & (energy > 0)
         sun = np.where(in_sun[..., None], self.radiance, np.float32(0.0))
         sky = np.where(in_sun[..., None], np.float32(0.0), self.radiance)
-        return EnvironmentLight(sun), EnvironmentLight(sky)
+        return EnvironmentLight(sun), EnvironmentLight(sky, sampling_cell(*sky.shape[:2]))
 
     @property
     def shape(self):
@@ -133,42 +166,59 @@ class EnvironmentLight:
         directions and the pdf's sin(theta) by float32 round-off, never the texel."""
         u = np.asarray(u, dtype=np.float64)
         height, width, _ = self.radiance.shape
+        cell = self.cell
         u0 = np.minimum(u[..., 0], np.nextafter(1.0, 0.0))
+        u1 = u[..., 1]
         if self._guide is None:
-            self._guide = guide_table(self._cdf)
+            cells = self._cdf.size - 1
+            self._guide = guide_table(self._cdf, max(cells, min(GUIDE_BUCKETS_PER_CELL * cells, GUIDE_MAX_BUCKETS)))
         k = np.clip(search_cdf(self._cdf, u0, self._guide), 0, self._lit.size - 1)
         lo = self._cdf[k]
         span = self._cdf[k + 1] - lo
         offset = np.clip((u0 - lo) / np.where(span > 0, span, 1.0), 0.0, 1.0)
         row, col = np.take(self._lit_row, k), np.take(self._lit_col, k)
-        x = np.minimum((col + offset) / width, np.nextafter(1.0, 0.0))
-        y = np.minimum((row + u[..., 1]) / height, np.nextafter(1.0, 0.0))
+        x = np.minimum((col + offset) * (cell / width), np.nextafter(1.0, 0.0))
+        y = np.minimum((row + u1) * (cell / height), np.nextafter(1.0, 0.0))
         directions = uv_to_direction(x, y, dtype)
         pdf = _uv_pdf_to_solid_angle(np.take(self._lit_pdf_uv, k), _sin_theta(directions))
-        return directions, pdf, np.take(self._lit_radiance, k, axis=0)
+        if cell == 1:
+            return directions, pdf, np.take(self._lit_radiance, k, axis=0)
+        # The texel within the cell, from the same offsets that placed the direction
+        texel_row = row * cell + np.minimum((u1 * cell).astype(np.int32), cell - 1)
+        texel_col = col * cell + np.minimum((offset * cell).astype(np.int32), cell - 1)
+        return directions, pdf, np.take(self.radiance.reshape(-1, 3), texel_row * width + texel_col, axis=0)
 
     def eval_pdf(self, directions):
         """(`eval`, `pdf`) of unit directions (..., 3) with a single direction lookup."""
         u, v = direction_to_uv(directions)
-        texel = self._row(v) * self.radiance.shape[1] + self._col(u)
-        return (np.take(self.radiance.reshape(-1, 3), texel, axis=0),
-                _uv_pdf_to_solid_angle(np.take(self.texel_pdf_uv, texel), _sin_theta(directions)))
+        row, col = self._row(v), self._col(u)
+        return (np.take(self.radiance.reshape(-1, 3), row * self.radiance.shape[1] + col, axis=0),
+                _uv_pdf_to_solid_angle(np.take(self.cell_pdf_uv, self._cell_index(row, col)),
+                                       _sin_theta(directions)))
 
     def pdf(self, directions) -> np.ndarray:
         """Solid-angle pdf (...) float64 of `sample` producing unit directions (..., 3)."""
         u, v = direction_to_uv(directions)
-        return _uv_pdf_to_solid_angle(self.texel_pdf_uv[self._row(v), self._col(u)],
+        return _uv_pdf_to_solid_angle(np.take(self.cell_pdf_uv, self._cell_index(self._row(v), self._col(u))),
                                       _sin_theta(directions))
 
     def invert_sample(self, directions) -> np.ndarray:
         """The u (..., 2) that `sample` maps to unit directions (..., 3)."""
         u, v = direction_to_uv(directions)
         height, width, _ = self.radiance.shape
-        row, col = self._row(v), self._col(u)
-        k = np.clip(np.searchsorted(self._lit, row * width + col), 0, self._lit.size - 1)
-        offset = np.clip(u * width - col, 0.0, 1.0)
+        rows, cols = height // self.cell, width // self.cell
+        row = np.clip((np.asarray(v) * rows).astype(np.int64), 0, rows - 1)
+        col = np.clip((np.asarray(u) * cols).astype(np.int64), 0, cols - 1)
+        k = np.clip(np.searchsorted(self._lit, row * cols + col), 0, self._lit.size - 1)
+        offset = np.clip(u * cols - col, 0.0, 1.0)
         u0 = self._cdf[k] + offset * (self._cdf[k + 1] - self._cdf[k])
-        return np.stack([u0, np.clip(v * height - row, 0.0, 1.0)], axis=-1)
+        return np.stack([u0, np.clip(v * rows - row, 0.0, 1.0)], axis=-1)
+
+    def _cell_index(self, row, col):
+        """Flat index into cell_pdf_uv of texel rows and columns."""
+        if self.cell == 1:
+            return row * self.radiance.shape[1] + col
+        return (row // self.cell) * (self.radiance.shape[1] // self.cell) + col // self.cell
 
     def _row(self, v):
         height = self.radiance.shape[0]
@@ -177,6 +227,15 @@ class EnvironmentLight:
     def _col(self, u):
         width = self.radiance.shape[1]
         return np.clip((np.asarray(u) * width).astype(np.int64), 0, width - 1)
+
+
+def sampling_cell(height: int, width: int) -> int:
+    """The side of the texel cells a sky is sampled over: the largest power of two that
+    divides both sides and leaves at least SAMPLING_ROWS rows of cells (1 for small maps)."""
+    cell = 1
+    while height % (2 * cell) == 0 and width % (2 * cell) == 0 and height // (2 * cell) >= SAMPLING_ROWS:
+        cell *= 2
+    return cell
 
 
 def lookup_normal_table(table: np.ndarray, normals) -> np.ndarray:
@@ -245,7 +304,8 @@ def _sin_theta(directions):
     """sin(theta) of unit directions (..., 3): the length of their (x, z) part (accurate at
     both poles, in the directions' precision)."""
     d = np.asarray(directions)
-    return np.hypot(d[..., 0], d[..., 2])
+    x, z = d[..., 0], d[..., 2]
+    return np.sqrt(x * x + z * z)
 
 
 def _top_energy_fraction(energy, share: float) -> float:

@@ -81,6 +81,30 @@ def test_direction_round_trip_at_poles(v):
     np.testing.assert_allclose(em.uv_to_direction(*em.direction_to_uv(d)), d, atol=1e-12)
 
 
+def test_float32_arctan2_is_numpys_within_float32_round_off():
+    rng = np.random.default_rng(4)
+    y = (rng.standard_normal(200_000) * np.exp(rng.uniform(-30, 30, 200_000))).astype(np.float32)
+    x = (rng.standard_normal(200_000) * np.exp(rng.uniform(-30, 30, 200_000))).astype(np.float32)
+    edges = np.array([0.0, -0.0, 1.0, -1.0, 1e-38, -1e-38], np.float32)
+    y = np.concatenate([y, np.repeat(edges, edges.size)])
+    x = np.concatenate([x, np.tile(edges, edges.size)])
+    got = em.arctan2_float32(y, x)
+    exact = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    assert got.dtype == np.float32
+    assert np.abs(got - exact).max() < 4e-7
+    np.testing.assert_array_equal(np.signbit(got), np.signbit(np.arctan2(y, x)))  # -0, -pi
+    assert np.isnan(em.arctan2_float32(np.float32([np.nan, 1.0]), np.float32([1.0, np.nan]))).all()
+
+
+def test_float32_directions_find_the_float64_texel():
+    d = em.texel_directions(512, 1024).reshape(-1, 3)  # texel centres: far from every edge
+    u64, v64 = em.direction_to_uv(d)
+    u32, v32 = em.direction_to_uv(d.astype(np.float32))
+    assert u32.dtype == np.float32
+    np.testing.assert_array_equal((v32 * 512).astype(int), (v64 * 512).astype(int))
+    np.testing.assert_array_equal((u32 * 1024).astype(int), (u64 * 1024).astype(int))
+
+
 def test_texel_directions_are_unit_and_uv_inverts():
     d = em.texel_directions(8, 16)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-14)

@@ -94,6 +94,64 @@ def test_environment_inversion_round_trip(name):
     np.testing.assert_allclose(light.invert_sample(directions), u, atol=1e-6)
 
 
+@pytest.mark.parametrize("name", sorted(MAPS))
+def test_sampling_over_cells_is_the_cells_energy_uniform_within(name):
+    # A light sampled over 4x4-texel cells: each cell as often as its energy says, its
+    # texels by their share of its (u, v) area; sample, eval, pdf and inversion agree
+    env = MAPS[name]()
+    cell = 2 if env.shape[0] < 16 else 4
+    light = EnvironmentLight(env, cell)
+    assert light.cell == cell and light._lit_radiance is None
+    u = np.random.default_rng(13).random((200_000, 2))
+    directions, pdf, radiance = light.sample_radiance(u)
+    uu, vv = direction_to_uv(directions)
+    height, width = env.shape[:2]
+    row, col = np.clip((vv * height).astype(int), 0, height - 1), np.clip((uu * width).astype(int), 0, width - 1)
+    rows, cols = height // cell, width // cell
+    cell_energy = _expected_texel_probabilities(env).reshape(rows, cell, cols, cell).sum(axis=(1, 3))
+    expected = np.repeat(np.repeat(cell_energy / cell ** 2, cell, axis=0), cell, axis=1).ravel() * u.shape[0]
+    counts = np.bincount(row * width + col, minlength=height * width).astype(float)
+    assert chi_square_pvalue(counts, expected) > 1e-3
+    np.testing.assert_array_equal(radiance, env[row, col])
+    radiance_eval, pdf_eval = light.eval_pdf(directions)
+    np.testing.assert_array_equal(radiance_eval, radiance)
+    np.testing.assert_allclose(pdf_eval, pdf, rtol=1e-9)
+    np.testing.assert_allclose(light.pdf(directions), pdf, rtol=1e-9)
+    np.testing.assert_allclose(light.invert_sample(directions[:2000]), u[:2000], atol=1e-6)
+    # unbiased: E[L / pdf] is the map's energy (within 5 standard errors)
+    weight = radiance.mean(axis=1) / pdf
+    assert abs(weight.mean() - light.total_energy) < 5 * weight.std() / np.sqrt(weight.size) + 1e-9 * light.total_energy
+    from relightcli.io.envmap import texel_directions
+
+    fine = light.pdf(texel_directions(256, 512))
+    assert np.sum(fine * texel_solid_angles(256, 512)) == pytest.approx(1.0, rel=1e-3)
+
+
+def test_a_sky_is_sampled_over_cells_and_a_sun_texel_by_texel():
+    from relightcli.render.environment import SAMPLING_ROWS, sampling_cell
+
+    assert sampling_cell(4 * SAMPLING_ROWS, 8 * SAMPLING_ROWS) == 4
+    assert sampling_cell(SAMPLING_ROWS, 2 * SAMPLING_ROWS) == 1
+    assert sampling_cell(3 * SAMPLING_ROWS, 6 * SAMPLING_ROWS) == 2  # halving again leaves too few rows
+    assert sampling_cell(1000, 2000) == 4  # 8 does not divide 1000
+    with pytest.raises(ValueError, match="cell"):
+        EnvironmentLight(_gradient(), 3)
+    sun, sky = EnvironmentLight(_sun_and_sky(4 * SAMPLING_ROWS)).sun_and_sky()
+    assert sun.cell == 1 and sky.cell == 4
+    # A map without a sun: its MIS term samples a coarse copy that shares the irradiance table
+    from relightcli.render.integrator import plan_lighting
+
+    light = EnvironmentLight(_gradient(4 * SAMPLING_ROWS))
+    coarse = light.coarse_sampling()
+    assert coarse.cell == 4 and coarse is light.coarse_sampling() and coarse.radiance is light.radiance
+    normals = np.array([[0.0, 1.0, 0.0], [0.6, 0.0, -0.8]])
+    np.testing.assert_array_equal(coarse.irradiance(normals), light.irradiance(normals))
+    assert coarse._irradiance is None  # one table, the light's
+    assert plan_lighting(light, "mis").terms[0][0] is coarse
+    small = EnvironmentLight(_gradient())
+    assert small.coarse_sampling() is small
+
+
 def test_pdf_integrates_to_one_over_the_sphere():
     light = EnvironmentLight(_gradient())
     height, width = 256, 512
