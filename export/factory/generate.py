@@ -33,6 +33,7 @@ class GenerationConfig:
     samples_per_person: int = scenes.SAMPLES_PER_PERSON
     sky_probability: float = lighting.SKY_PROBABILITY
     augment: bool = True
+    yaw_offset_deg: float = 0.0
 
 
 def parse_fractions(text: str | None) -> dict[str, float]:
@@ -87,7 +88,8 @@ def render_group(root, split: str, indices: list[int], config: GenerationConfig)
     for index in indices:
         spec = scenes.sample_scene(config.seed, split, index, hdris,
                                    samples_per_person=config.samples_per_person,
-                                   sky_probability=config.sky_probability, augment=config.augment)
+                                   sky_probability=config.sky_probability, augment=config.augment,
+                                   yaw_offset_deg=config.yaw_offset_deg)
         if person is None:
             person = build_person(spec.person_seed, split)
         arrays, meta = render.render_sample(spec, person, config.settings)
@@ -157,6 +159,7 @@ def build_card(root, counts: dict[str, int], config: GenerationConfig, command: 
         "render_settings": config.settings.as_dict(),
         "samples_per_person": config.samples_per_person,
         "sky_probability": config.sky_probability, "augment": config.augment,
+        "yaw_offset_deg": config.yaw_offset_deg,
         "camera": {"pitch_deg": scenes.PITCHES_DEG, "yaw_deg": scenes.YAWS_DEG,
                    "scale": scenes.SCALES, "frame_fill": scenes.FRAME_FILL,
                    "background_fov_deg": scenes.BACKGROUND_FOV_DEG},
@@ -192,6 +195,8 @@ def _arguments(argv):
     parser.add_argument("--samples-per-person", type=int, default=scenes.SAMPLES_PER_PERSON)
     parser.add_argument("--sky-probability", type=float, default=lighting.SKY_PROBABILITY)
     parser.add_argument("--no-augment", action="store_true", help="no noise/blur/colour jitter")
+    parser.add_argument("--yaw-offset", type=float, default=0.0,
+                        help="degrees added to every camera's yaw (180: the people from behind)")
     return parser.parse_args(argv)
 
 
@@ -206,7 +211,8 @@ def main(argv=None) -> int:
                                      ao_spp=args.ao_spp, bounces=args.bounces)
     config = GenerationConfig(seed=args.seed, settings=settings,
                               samples_per_person=args.samples_per_person,
-                              sky_probability=args.sky_probability, augment=not args.no_augment)
+                              sky_probability=args.sky_probability, augment=not args.no_augment,
+                              yaw_offset_deg=args.yaw_offset)
     counts = split_counts(args.count, parse_fractions(args.splits))
     given = sys.argv[1:] if argv is None else argv
     command = "python -m export.factory.generate " + " ".join(given)

@@ -114,12 +114,15 @@ def camera_setting(seed: int, split: str, index: int,
 def sample_scene(seed: int, split: str, index: int, hdris: tuple[str, ...], *,
                  samples_per_person: int = SAMPLES_PER_PERSON,
                  sky_probability: float = lighting.SKY_PROBABILITY,
-                 augment: bool = True) -> SceneSpec:
-    """The settings of sample `index` of `split`, drawn from `hdris` (that split's maps)."""
+                 augment: bool = True, yaw_offset_deg: float = 0.0) -> SceneSpec:
+    """The settings of sample `index` of `split`, drawn from `hdris` (that split's maps).
+    yaw_offset_deg turns every camera by that much more (180: the people seen from behind);
+    everything else is the sample's as without it."""
     _check(seed, split, index, samples_per_person)
     state = np.random.SeedSequence([int(seed), SPLITS.index(split), int(index)])
     rng = np.random.default_rng(state)
     pitch, yaw, scale = camera_setting(seed, split, index, samples_per_person)
+    yaw += float(yaw_offset_deg)
     light_a = lighting.sample_lighting(rng, hdris, sky_probability)
     light_b = lighting.sample_lighting(rng, hdris, sky_probability)
     # a photo's background is what lit it; a procedural sky borrows a split HDRI

@@ -129,6 +129,16 @@ def test_sample_scene_is_deterministic():
     assert scenes.sample_scene(3, "val", 17, hdris) == scenes.sample_scene(3, "val", 17, hdris)
 
 
+def test_a_yaw_offset_turns_the_camera_and_changes_nothing_else():
+    from dataclasses import replace
+
+    hdris = ("a.hdr", "b.hdr", "c.hdr")
+    front = scenes.sample_scene(3, "test", 5, hdris)
+    back = scenes.sample_scene(3, "test", 5, hdris, yaw_offset_deg=180.0)
+    assert back.yaw_deg == front.yaw_deg + 180.0
+    assert replace(back, yaw_deg=front.yaw_deg) == front
+
+
 def test_frame_rect_centres_the_person_with_the_fill():
     points = np.array([[0.0, 0.0], [0.5, 2.0]])
     x0, x1, y0, y1 = scenes.frame_rect(points, scale=1.0)
