@@ -102,28 +102,27 @@ class EnvironmentLight:
         self.sun_fraction = _top_energy_fraction(energy, 0.001)
         self.is_sun_only = (not self.is_black) and self.sun_fraction >= SUN_ENERGY_FRACTION
         self._sun_and_sky = None
-        self._irradiance = None
         self._coarse = None
-        self._parent = None  # the light a coarse_sampling() copy shares its irradiance with
+        # Built on first use, shared with the coarse_sampling() copy: "irradiance"
+        self._tables = {}
 
     def irradiance(self, normals) -> np.ndarray:
         """Unoccluded shading (1/pi) integral of L(w) max(0, n.w) dw (DESIGN.md units) for unit
         normals (N, 3): (N, 3) float64, bilinear in a table built on first use."""
-        if self._parent is not None:
-            return self._parent.irradiance(normals)
-        if self._irradiance is None:
-            self._irradiance = _irradiance_table(self.radiance, IRRADIANCE_NODES,
-                                                 IRRADIANCE_TEXEL_ROWS)
-        return lookup_normal_table(self._irradiance, normals)
+        if "irradiance" not in self._tables:
+            self._tables["irradiance"] = _irradiance_table(self.radiance, IRRADIANCE_NODES,
+                                                           IRRADIANCE_TEXEL_ROWS)
+        return lookup_normal_table(self._tables["irradiance"], normals)
 
     def coarse_sampling(self):
         """This light sampled over cells of texels (`sampling_cell`) instead of single
         texels: the same radiance and irradiance table, a small sampling table. Cached."""
+        cell = sampling_cell(*self.radiance.shape[:2])
+        if cell == self.cell:
+            return self
         if self._coarse is None:
-            cell = sampling_cell(*self.radiance.shape[:2])
-            self._coarse = self if cell == self.cell else EnvironmentLight(self.radiance, cell)
-            if self._coarse is not self:
-                self._coarse._parent = self
+            self._coarse = EnvironmentLight(self.radiance, cell)
+            self._coarse._tables = self._tables  # one irradiance table for both
         return self._coarse
 
     def sun_and_sky(self):
@@ -136,7 +135,7 @@ class EnvironmentLight:
         """(sun, sky): two lights whose radiances sum to this one's. The sun holds the
         brightest `share` of texels by energy, the sky the rest, so each can be sampled
         on its own: the choice between sun and sky then adds no variance. The sun is sampled
-        texel by texel, the sky over cells (`coarse_sampling`)."""
+        texel by texel, the sky over cells (`sampling_cell`)."""
         energy = self.radiance.mean(axis=2) * texel_solid_angles(*self.radiance.shape[:2])
         count = max(1, int(round(share * energy.size)))
         threshold = np.partition(energy.ravel(), energy.size - count)[energy.size - count]

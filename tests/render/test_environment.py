@@ -146,7 +146,7 @@ def test_a_sky_is_sampled_over_cells_and_a_sun_texel_by_texel():
     assert coarse.cell == 4 and coarse is light.coarse_sampling() and coarse.radiance is light.radiance
     normals = np.array([[0.0, 1.0, 0.0], [0.6, 0.0, -0.8]])
     np.testing.assert_array_equal(coarse.irradiance(normals), light.irradiance(normals))
-    assert coarse._irradiance is None  # one table, the light's
+    assert coarse._tables["irradiance"] is light._tables["irradiance"]  # one table, the light's
     assert plan_lighting(light, "mis").terms[0][0] is coarse
     small = EnvironmentLight(_gradient())
     assert small.coarse_sampling() is small
