@@ -600,7 +600,8 @@ def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
     silhouette (R, R) person probability or None (sets R; the mask is where it exceeds
     config.silhouette_threshold; non-finite or nearly empty maps are not used, see
     BodyFit.silhouette_used); resolution R when there is no silhouette. Never raises on missing, NaN or collapsed landmarks: those, and
-    a person too little seen, seen from behind or sitting, give a rest-pose body with
+    a person too little seen or sitting, 2D keypoints and world landmarks with left and right on
+    opposite sides, give a rest-pose body with
     converged False and the reason; a fit whose keypoint residual stays above
     config.max_residual_px (at 512 px) comes back with converged False too.
     """
@@ -677,14 +678,33 @@ def _input_problem(keypoints, weight, world, config: FitConfig) -> str | None:
     torso = np.linalg.norm(points[list(_SHOULDERS)].mean(0) - points[list(_HIPS)].mean(0))
     if hips < 0.02 or torso < 0.1:
         return "world landmarks collapsed (hips or torso shorter than 2 cm / 10 cm)"
+    if _sides_disagree(keypoints, weight, points):
+        return "the 2D keypoints and the world landmarks put left and right on opposite sides"
     frame = _torso_frame(points)
-    if frame[2, 2] < -0.3:
-        return "back view (the torso faces away from the camera)"
     thighs = [points[_L[k]] - points[_L[h]] for h, k in (("left_hip", "left_knee"),
                                                          ("right_hip", "right_knee"))]
     if all(-(t @ frame[:, 1]) < 0.5 * np.linalg.norm(t) for t in thighs):
         return "sitting (both thighs more than 60 degrees from the torso's axis)"
     return None
+
+
+def _sides_disagree(keypoints, weight, points, clear: float = 0.2) -> bool:
+    """Whether the 2D keypoints and the world landmarks (model frame) place the person's left
+    on opposite sides of the image: each side's left-minus-right x of hips plus shoulders,
+    over its torso length, beyond `clear` and of opposite signs (a side view, where both are
+    near 0, never disagrees). A person seen from behind agrees: both have the left on the
+    image's left. Keypoints not seen leave the 2D side undecided."""
+    pairs = (_HIPS, _SHOULDERS)
+    if not all(weight[i] > 0 for pair in pairs for i in pair):
+        return False
+
+    def side(p):
+        across = sum(p[left, 0] - p[right, 0] for left, right in pairs)
+        torso = np.linalg.norm(p[list(_SHOULDERS), :2].mean(0) - p[list(_HIPS), :2].mean(0))
+        return across / max(torso, 1e-9)
+
+    flat, deep = side(keypoints), side(points)
+    return flat * deep < 0 and min(abs(flat), abs(deep)) > clear
 
 
 def _hip_centred(points: np.ndarray) -> np.ndarray:

@@ -47,13 +47,14 @@ def model():
     return BodyModel.load()
 
 
-def make_person(model, pose, seed, shape_sigma=0.7, noise_px=1.5, noise_m=0.02):
+def make_person(model, pose, seed, shape_sigma=0.7, noise_px=1.5, noise_m=0.02, turn=0.0):
     """Truth (shape, rotations, translation, scale) and observations (keypoints px,
-    visibility, world m) of a turned, placed person with a bent spine and random shape."""
+    visibility, world m) of a turned, placed person with a bent spine and random shape
+    (`turn` radians more about the vertical: pi for a person seen from behind)."""
     rng = np.random.default_rng(seed)
     shape = np.clip(rng.normal(0.0, shape_sigma, model.n_shape), -2.5, 2.5)
     rotations = model.rest_pose()
-    rotations[0] = axis_angle_to_matrix(np.array([0.0, rng.uniform(-0.5, 0.5), 0.0]))
+    rotations[0] = axis_angle_to_matrix(np.array([0.0, turn + rng.uniform(-0.5, 0.5), 0.0]))
     for bone in ("spine04", "spine02", "neck01"):
         rotations[model.joint_names.index(bone)] = axis_angle_to_matrix(rng.normal(0, 0.08, 3))
     rotations = aim_limbs(model, rotations, {**POSES[pose], **LEGS}, shape)
@@ -123,6 +124,26 @@ def test_fit_recovers_every_limb_of_a_known_pose(model, pose):
     assert errors.mean() < 0.025 and errors.max() < 0.05, errors  # metres
     assert errors.mean() < 0.6 * initial.mean()  # the optimisation beats the closed form
     assert fit.residual_px < 2.5
+
+
+@pytest.mark.parametrize("pose", ["T-pose", "crossed-arms"])
+def test_fit_recovers_a_person_seen_from_behind(model, pose):
+    truth, (keypoints, visibility, world) = make_person(model, pose, seed=7, turn=np.pi)
+    fit = fit_body(model, keypoints, visibility, world, resolution=RESOLUTION)
+    assert fit.converged, fit.reason
+    errors = np.linalg.norm(core_joints(model, fit.shape, fit.rotations)
+                            - core_joints(model, truth[0], truth[1]), axis=1)
+    assert errors.mean() < 0.025 and errors.max() < 0.05, errors  # metres
+    # The fitted torso faces away from the camera, as the true one does
+    _, _, landmarks = model.posed(fit.shape, fit.rotations)
+    assert body_fit._torso_frame(landmarks)[2, 2] < -0.5
+    assert fit.residual_px < 2.5
+
+
+def test_a_side_view_is_not_taken_for_a_left_right_contradiction(model):
+    truth, (keypoints, visibility, world) = make_person(model, "A-pose", seed=8, turn=np.pi / 2)
+    fit = fit_body(model, keypoints, visibility, world, resolution=RESOLUTION)
+    assert "opposite sides" not in fit.reason
 
 
 def test_fit_recovers_a_known_shape_and_placement_from_clean_observations(model):
@@ -273,15 +294,15 @@ def _degrade(kind, keypoints, visibility, world):
         keypoints[:] = keypoints[0]
     elif kind == "cut by the frame":
         visibility[23:] = 0.0
-    elif kind == "back view":
-        world = world * np.array([-1.0, 1.0, -1.0])  # turned half a turn about the vertical
+    elif kind == "sides disagree":  # the world turned half a turn, the keypoints not
+        world = world * np.array([-1.0, 1.0, -1.0])
     return keypoints, visibility, world
 
 
 @pytest.mark.parametrize("kind, words", [
     ("no world", "world"), ("world NaN", "world"), ("world collapsed", "collapsed"),
     ("keypoints NaN", "main joints"), ("keypoints collapsed", "collapse"),
-    ("cut by the frame", "main joints"), ("back view", "back view")])
+    ("cut by the frame", "main joints"), ("sides disagree", "opposite sides")])
 def test_bad_inputs_fall_back_with_a_reason_and_finite_numbers(model, kind, words):
     _, observed = make_person(model, "A-pose", seed=5)
     fit = fit_body(model, *_degrade(kind, *observed), resolution=RESOLUTION)
