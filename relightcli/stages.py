@@ -263,8 +263,10 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     """The body model fitted to each person found (relightcli.geometry.body_fit): their 33
     keypoints in the crop, BlazePose's visibility and world landmarks, the crop mask as the
     silhouette. frame.bodies keeps the fits (vertices in the crop's world frame);
-    frame.notes["body"] per person the seconds, RMS keypoint residual (crop pixels) and whether
-    the fit converged (or why not)."""
+    frame.notes["body"] per person the seconds, RMS keypoint residual (crop pixels), whether
+    the fit converged (or why not) and, if it did, whether the fitted body faces the camera
+    (`seen_from` front or behind: BlazePose takes some front-facing people for back views and
+    the other way round, README: the body)."""
     import time
 
     model = models.body_model()
@@ -276,9 +278,12 @@ def stage_body(frame: Frame, options, models: Models) -> None:
                                         person.pose.landmarks[:, 3], person.pose.world, silhouette)
         fits.append(fit)
         residual = float(fit.residual_px)
-        people.append({"seconds": round(time.perf_counter() - start, 4),
-                       "residual_px": round(residual, 3) if np.isfinite(residual) else None,
-                       "converged": bool(fit.converged), "reason": fit.reason})
+        note = {"seconds": round(time.perf_counter() - start, 4),
+                "residual_px": round(residual, 3) if np.isfinite(residual) else None,
+                "converged": bool(fit.converged), "reason": fit.reason}
+        if fit.converged:
+            note["seen_from"] = "front" if fit.faces_camera else "behind"
+        people.append(note)
     frame.bodies = fits
     frame.notes["body"] = {"people": people}
 

@@ -115,7 +115,8 @@ class BodyFit:
     scale)` gives vertices (V, 3) float64 in the crop's world frame (the photo's person under
     the orthographic crop camera, hips at depth 0); residual_px: RMS visible-keypoint error
     in crop pixels (nan when nothing was fitted); converged False with a reason on a fallback;
-    silhouette_used: whether the silhouette terms took part (a usable mask was given)."""
+    silhouette_used: whether the silhouette terms took part (a usable mask was given);
+    faces_camera: whether the fitted torso faces the camera (False: seen from behind)."""
 
     shape: np.ndarray
     rotations: np.ndarray
@@ -126,6 +127,7 @@ class BodyFit:
     converged: bool
     reason: str
     silhouette_used: bool = False
+    faces_camera: bool = True
 
 
 def blazepose_world_to_model(world: np.ndarray) -> np.ndarray:
@@ -744,7 +746,8 @@ def _finish(problem: _Problem, params: np.ndarray, resolution: int) -> BodyFit:
     converged = residual <= limit
     reason = "" if converged else (f"fit did not converge: {residual:.1f} px RMS keypoint "
                                    f"error, limit {limit:.1f}")
-    return BodyFit(shape, rotations, translation, scale, vertices, residual, converged, reason)
+    return BodyFit(shape, rotations, translation, scale, vertices, residual, converged, reason,
+                   faces_camera=bool(_torso_frame(landmarks)[2, 2] >= 0.0))
 
 
 def _residual_px(landmarks, keypoints, weight, resolution: int) -> float:

@@ -63,7 +63,7 @@ def tpose_frame():
 def test_the_tpose_render_is_fitted_and_reported(tpose_frame):
     frame, _ = tpose_frame
     (note,) = frame.notes["body"]["people"]
-    assert note["converged"] and note["reason"] == ""
+    assert note["converged"] and note["reason"] == "" and note["seen_from"] == "front"
     assert note["residual_px"] < 3.0  # crop pixels at 256
     assert note["seconds"] > 0
     json.dumps(frame.notes["body"])  # the report is written as JSON
