@@ -10,6 +10,7 @@ per-pixel sums.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 
 import numpy as np
 
@@ -27,6 +28,11 @@ def pass_statistics(values, first_pass, groups):
 
 
 def _worker_start():
+    # Stopping is the parent's: it ends the workers by SIGTERM when it closes the pool. A
+    # handler inherited from it (the CLI's raises batch.Stopped) would print a traceback from
+    # each worker it ends, and Ctrl-C reaches the whole process group
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The worker traces on its own: never through the parent's tracing pool
     _RUN.scene.detach_workers()
 

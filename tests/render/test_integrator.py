@@ -258,6 +258,31 @@ def test_two_workers_give_the_same_image_as_one(target_error, round_rays, monkey
     assert two.rays == one.rays
 
 
+def _stop_dispositions():
+    import signal
+
+    return signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+
+
+def test_forked_workers_leave_stopping_to_the_parent():
+    """Closing the pool ends the workers by SIGTERM: whatever handler the parent had (the CLI's
+    raises batch.Stopped, which printed a traceback from each worker ended), a worker takes the
+    default action; Ctrl-C, sent to the whole process group, is the parent's to handle."""
+    import signal
+    from types import SimpleNamespace
+
+    from relightcli.render.parallel import ForkedPasses
+
+    scene, _ = _body_like_scene()
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: None)
+    try:
+        with ForkedPasses(SimpleNamespace(scene=scene), 2) as passes:
+            dispositions = passes._pool.apply(_stop_dispositions)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert dispositions == (signal.SIG_DFL, signal.SIG_IGN)
+
+
 # ------------------------------------------------------------------ doing only what is needed
 def test_black_map_traces_nothing():
     scene, geometry = _body_like_scene()
