@@ -601,11 +601,12 @@ def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
     world (33, 3) BlazePose world landmarks, m, hip-centred, y down (None: missing);
     silhouette (R, R) person probability or None (sets R; the mask is where it exceeds
     config.silhouette_threshold; non-finite or nearly empty maps are not used, see
-    BodyFit.silhouette_used); resolution R when there is no silhouette. Never raises on missing, NaN or collapsed landmarks: those, and
-    a person too little seen or sitting, 2D keypoints and world landmarks with left and right on
-    opposite sides, give a rest-pose body with
-    converged False and the reason; a fit whose keypoint residual stays above
-    config.max_residual_px (at 512 px) comes back with converged False too.
+    BodyFit.silhouette_used); resolution R when there is no silhouette. Never raises on
+    missing, NaN or collapsed landmarks: those, a person too little seen or sitting, and 2D
+    keypoints and world landmarks with left and right on opposite sides give a rest-pose body
+    with converged False and the reason; a fit whose keypoint residual stays above
+    config.max_residual_px (at 512 px) comes back with converged False too. A person seen
+    from behind is fitted like any other (BodyFit.faces_camera False).
     """
     resolution = _resolution(silhouette, resolution)
     keypoints, weight = _seen_keypoints(keypoints_2d, visibility, resolution, config)
