@@ -788,6 +788,9 @@ def body_weight(frame: Frame) -> np.ndarray:
 # bodies with their smooth vertex normals, and traced from the triangles themselves a grazing
 # sun's terminator came out as a staircase of facets (2-3 px steps across a face).
 SHADOW_LIFT = 1.0
+# The traced visibility is filtered with the integrator's own error estimate (render.denoise,
+# adaptive_wiener) in windows of 2 r + 1 pixels; 0: not filtered
+SHADING_FILTER_RADIUS = 1
 
 
 def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
@@ -841,23 +844,28 @@ def traced(scene, hits, light, spp, target, seed, threads, wanted, step) -> tupl
     dB, against step 1): validation 16.81 / 20.43 (16.82 / 20.45), test 18.06 / 19.00 (18.05 /
     19.00); the shading's SSIM 0.756 / 0.658 (0.752 / 0.654). The ray tracing stage at 512
     0.40 s instead of 0.74 s (`python bench/bench_pipeline.py [--shadows full]`). The coarse
-    shading itself interpolated, without the ratio, lost 0.2 dB of shading on validation."""
+    shading itself interpolated, without the ratio, lost 0.2 dB of shading on validation.
+
+    The visibility is filtered before it is used (SHADING_FILTER_RADIUS, at either step):
+    render.denoise.adaptive_wiener with the integrator's own per-pixel error, which takes out
+    the noise a map of many small lights leaves at the sample cap (dark speckles where a few
+    occluded samples drew a bright lamp) and keeps a cast shadow's edge. The returned error is
+    the Monte Carlo error before filtering."""
+    from relightcli.render.denoise import adaptive_wiener, visibility
     from relightcli.render.integrator import shade_environment
 
     coarse = hits.subsampled(step)
     result = shade_environment(scene, coarse, light, spp=spp, target_error=target, seed=seed, workers=threads,
                                lift=SHADOW_LIFT)
-    values = np.concatenate([result.mean, result.stderr], axis=-1)
+    seen, error, unoccluded, dark = visibility(result, light, coarse.normal)
+    if SHADING_FILTER_RADIUS:
+        seen = adaptive_wiener(seen, error, coarse.mask & ~dark.any(axis=-1), SHADING_FILTER_RADIUS)
     if step == 1:
+        mean = np.where(dark, result.mean, seen * unoccluded) if SHADING_FILTER_RADIUS else result.mean
         # means and errors filled together: one distance transform per render
-        return fill_uncovered(values, hits.mask, wanted), result
-    unoccluded = np.zeros(coarse.mask.shape + (3,))
-    unoccluded[coarse.mask] = light.irradiance(coarse.normal[coarse.mask])
-    floor = max(1e-9 * float(unoccluded.max()), 1e-30)
-    dark = unoccluded <= floor
-    ratio = np.concatenate([np.where(dark, 1.0, result.mean / np.where(dark, 1.0, unoccluded)),
-                            np.where(dark, 0.0, result.stderr / np.where(dark, 1.0, unoccluded))], axis=-1)
-    ratio = fill_uncovered(ratio, coarse.mask, np.ones(coarse.mask.shape, bool))
+        return fill_uncovered(np.concatenate([mean, result.stderr], axis=-1), hits.mask, wanted), result
+    ratio = fill_uncovered(np.concatenate([seen, error], axis=-1), coarse.mask,
+                           np.ones(coarse.mask.shape, bool))
     full = np.zeros(hits.mask.shape + (3,), np.float32)
     full[hits.mask] = light.irradiance(hits.normal[hits.mask])
     values = upsample(ratio.astype(np.float32), hits.mask.shape, step) * np.concatenate([full, full], axis=-1)

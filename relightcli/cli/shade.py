@@ -55,6 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "staircase of facets at a hard light's terminator on a coarse smooth-shaded "
                              "mesh (default 0: rays leave the triangles, exact to the mesh as given; "
                              "relight's own renders use 1)")
+    parser.add_argument("--denoise", action="store_true",
+                        help="filter the shading's Monte Carlo noise with the integrator's own per-pixel "
+                             "error (adaptive Wiener filter on the visibility; the error map and the "
+                             "reported error stay those before filtering)")
     parser.add_argument("--error-map", default=None, metavar="PATH",
                         help="also write the per-pixel standard error (linear, same units)")
     parser.add_argument("--mask-map", default=None, metavar="PATH",
@@ -76,6 +80,7 @@ def run(args, threads: int) -> dict:
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import write_image
     from relightcli.render.camera import default_rect, render_pixel_geometry
+    from relightcli.render.denoise import filtered_shading
     from relightcli.render.environment import EnvironmentLight
     from relightcli.render.integrator import shade_environment
     from relightcli.render.scene import Scene
@@ -99,9 +104,10 @@ def run(args, threads: int) -> dict:
             target_error=args.target_error, time_budget=args.time_budget,
             strategy=args.strategy, bounces=args.bounces, albedo=args.albedo,
             sampler=args.sampler, seed=args.seed, workers=workers, lift=args.lift)
+        shading = filtered_shading(result, light, geometry.normal) if args.denoise else result.mean
     seconds = time.perf_counter() - start
     mask = geometry.mask.astype(np.float32)
-    write_image(outputs["shading"], result.mean, alpha=mask, overwrite=args.overwrite)
+    write_image(outputs["shading"], shading, alpha=mask, overwrite=args.overwrite)
     if "error" in outputs:
         write_image(outputs["error"], result.stderr, alpha=mask, overwrite=args.overwrite)
     if "mask" in outputs:
@@ -174,6 +180,7 @@ def _report(args, result, geometry, rect, primary_rays, seconds, outputs, caught
         "mrays_per_s": round(rays / max(seconds, 1e-9) / 1e6, 3),
         "rel_error": round(result.median_relative_error(), 5),
         "strategy": result.strategy,
+        "denoised": bool(args.denoise),
         "pixels": masked,
         "resolution": list(args.res),
         "rect": [float(c) for c in rect],

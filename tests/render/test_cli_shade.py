@@ -136,3 +136,35 @@ def test_lift_outside_its_range_is_refused(inputs, tmp_path):
     mesh_path, hdr_path = inputs
     with pytest.raises(SystemExit):
         _parse([str(mesh_path), "--hdr", str(hdr_path), "-o", str(tmp_path / "s.exr"), "--lift", "-1"])
+
+
+def test_denoise_brings_a_noisy_render_closer_to_the_converged_one(tmp_path):
+    # A box on a ground plate under a map of many small bright lamps: the plate's partial
+    # shadows are noisy at 8 samples per pixel
+    from relightcli.io.images import write_image
+
+    box = trimesh.creation.box(extents=(0.6, 0.6, 0.6))
+    box.apply_translation((0.0, 0.0, 0.3))
+    plate = trimesh.creation.box(extents=(2.0, 2.0, 0.02))
+    mesh_path = tmp_path / "scene.obj"
+    trimesh.util.concatenate([box, plate]).export(mesh_path)
+    rng = np.random.default_rng(2)
+    env = np.full((32, 64, 3), 0.05, np.float32)
+    env[rng.integers(0, 16, 40), rng.integers(0, 64, 40)] = 40.0
+    hdr = tmp_path / "lamps.exr"
+    write_image(hdr, env, half=False)
+    common = [str(mesh_path), "--hdr", str(hdr), "--res", "64", "64", "--rect", "-1", "1", "-1", "1"]
+    _parse(common + ["-o", str(tmp_path / "ref.exr"), "--spp", "1024", "--seed", "9"])
+    plain = _parse(common + ["-o", str(tmp_path / "raw.exr"), "--spp", "8", "--error-map", str(tmp_path / "e1.exr")])
+    report = _parse(common + ["-o", str(tmp_path / "den.exr"), "--spp", "8", "--denoise",
+                              "--error-map", str(tmp_path / "e2.exr")])
+    reference, raw, filtered = (_read(tmp_path / f"{n}.exr")[..., :3] for n in ("ref", "raw", "den"))
+    lit = reference.mean(axis=-1) > 0
+
+    def error(image):
+        return float(np.sqrt(np.mean((image[lit] - reference[lit]) ** 2)))
+
+    assert error(filtered) < 0.75 * error(raw)
+    # the error map and the reported error are the Monte Carlo error before filtering
+    np.testing.assert_array_equal(_read(tmp_path / "e1.exr"), _read(tmp_path / "e2.exr"))
+    assert report["rel_error"] == plain["rel_error"] and report["denoised"] and not plain["denoised"]
