@@ -6,7 +6,7 @@
 The integrator bench's body (MakeHuman, subdivided once) at RES x RES, shadow rays lifted as
 the pipeline's (stages.SHADOW_LIFT), under each map: the shading at each sample count, as
 rendered and with its visibility (traced / unoccluded shading) filtered with the
-integrator's own per-pixel error (stages.traced does the same), against REF_SPP samples on
+integrator's own per-pixel error (render.denoise.filtered_shading, as stages.traced does), against REF_SPP samples on
 every masked pixel. Prints relative RMSE, the share of pixels more than 50% off the
 reference, the median error the integrator reports (before filtering) and the time of the
 render and of the filter; writes bench/results/denoise.json.
@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT / "tests" / "render"))
 from render_testing import body_mesh, load_hdr  # noqa: E402
 
 from relightcli.render.camera import default_rect, render_pixel_geometry  # noqa: E402
-from relightcli.render.denoise import adaptive_wiener  # noqa: E402
+from relightcli.render.denoise import filtered_shading  # noqa: E402
 from relightcli.render.environment import EnvironmentLight  # noqa: E402
 from relightcli.render.integrator import shade_environment  # noqa: E402
 from relightcli.render.scene import Scene  # noqa: E402
@@ -44,19 +44,6 @@ def errors(mean, reference, mask):
     got, ref = mean[mask].mean(axis=1), reference[mask].mean(axis=1)
     rmse = float(np.sqrt(np.mean((got - ref) ** 2)) / ref.mean())
     return rmse, float(np.mean(np.abs(got - ref) > 0.5 * np.maximum(ref, 1e-12)))
-
-
-def filtered(result, light, geometry):
-    """The render with its visibility filtered (as stages.traced does), and the filter's seconds."""
-    start = time.perf_counter()
-    mask = geometry.mask
-    unoccluded = np.zeros(mask.shape + (3,))
-    unoccluded[mask] = light.irradiance(geometry.normal[mask])
-    dark = unoccluded <= max(1e-9 * float(unoccluded.max()), 1e-30)
-    visibility = np.where(dark, 1.0, result.mean / np.where(dark, 1.0, unoccluded))
-    error = np.where(dark, 0.0, result.stderr / np.where(dark, 1.0, unoccluded))
-    visibility = adaptive_wiener(visibility, error, mask & ~dark.any(axis=-1))
-    return np.where(dark, result.mean, visibility * unoccluded), time.perf_counter() - start
 
 
 def main():
@@ -77,7 +64,9 @@ def main():
         reference = shade_environment(scene, geometry, light, spp=args.ref_spp, seed=7, lift=SHADOW_LIFT).mean
         for spp in (int(s) for s in args.spp.split(",")):
             result = shade_environment(scene, geometry, light, spp=spp, seed=1, lift=SHADOW_LIFT)
-            mean, seconds = filtered(result, light, geometry)
+            start = time.perf_counter()
+            mean = filtered_shading(result, light, geometry.normal)
+            seconds = time.perf_counter() - start
             raw, off = errors(result.mean, reference, geometry.mask)
             after, off_after = errors(mean, reference, geometry.mask)
             row = {"map": name, "spp": spp, "render_s": round(result.seconds, 3), "filter_s": round(seconds, 4),
