@@ -37,7 +37,7 @@ def adaptive_wiener(values: np.ndarray, stderr: np.ndarray, mask: np.ndarray,
     photostudio 02 9.1% -> 5.2%, autoshop 6.1% -> 3.2%, circus arena (many small lamps) 17.6%
     -> 8.5%, where pixels more than 50% off fell from 3.6% to 0.8%; the filtered render at
     16 samples is about as close as the raw one at 32 (sun, overcast) or 64 (studio,
-    autoshop); 12-40 ms at 256 px. Without the bound, a 5 x 5 window scored within 12% of
+    autoshop); 13-19 ms at 256 px. Without the bound, a 5 x 5 window scored within 12% of
     3 x 3 (better on the lamps, worse under the sun and in the studio); the bound at 2
     standard errors scored 1-5% worse than at 3.
     """
