@@ -18,6 +18,11 @@ DEFAULT_TARGET_ERROR, DEFAULT_SPP_CAP = 0.04, 32
 # own unoccluded shading (the eval scores within 0.07 dB of "full", the ray tracing stage
 # takes 0.6x the time); "full" every pixel.
 SHADOW_STEP = {"half": 2, "full": 1}
+# The solved input light's shading, which the albedo divides by (`--albedo solve`), comes from a
+# 16 x 32 map whose texels span 11 degrees: its shadows are soft, and "half" traces it on a grid
+# of about this many pixels across the crop (every fourth pixel at 512, every second at 256:
+# stages.input_shadow_step)
+INPUT_SHADOW_GRID = 128
 DEFAULT_SHADOWS = "half"
 
 # Default working resolution: the paper's 512-pixel person crop, although the shipped nets

@@ -19,7 +19,7 @@ from relightcli import compose
 from relightcli.io.envmap import environment_view
 from relightcli.io.images import row_bands
 from relightcli.errors import RelightError, RelightWarning
-from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, SHADOW_STEP
+from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, INPUT_SHADOW_GRID, SHADOW_STEP
 
 
 @dataclass
@@ -497,7 +497,9 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     frame.light = result.light
     if options.albedo == "solve":
         frame.light = solve_input_light(frame, albedo, options, models)
-        input_shading = trace_shading(frame, EnvironmentLight(frame.light), options)[0]
+        input_shading, note = trace_shading(frame, EnvironmentLight(frame.light), options,
+                                            input_shadow_step(options))
+        frame.notes["delight"]["input_shading"] = {key: note[key] for key in ("shadow_step", "rays", "rel_error")}
     elif options.albedo == "ratio":
         input_shading = sh_irradiance_shading(project_sh(result.light, 2), frame.normal)
     if options.albedo != "net":
@@ -509,6 +511,14 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     inside = frame.crop_mask > 0.5
     albedo = fill_uncovered(albedo, inside, frame.crop_mask > 0) if inside.any() else albedo
     frame.albedo = albedo * person_support(frame)
+
+
+def input_shadow_step(options) -> int:
+    """The pixel step of the rays for the solved input light's shading: with `--shadows half`
+    a grid of about INPUT_SHADOW_GRID pixels across the crop (never finer than the target's
+    step), with `full` every pixel."""
+    step = SHADOW_STEP[options.shadows]
+    return max(step, options.resolution // INPUT_SHADOW_GRID) if options.shadows == "half" else step
 
 
 # The light solve samples about this many of the person's pixels (a regular grid), with this
@@ -793,18 +803,18 @@ SHADOW_LIFT = 1.0
 SHADING_FILTER_RADIUS = 1
 
 
-def trace_shading(frame: Frame, light, options) -> tuple[np.ndarray, dict]:
+def trace_shading(frame: Frame, light, options, step: int | None = None) -> tuple[np.ndarray, dict]:
     """(shading (R, R, 3), note): the reconstruction ray-traced under `light` (an
     EnvironmentLight), blended with the fitted bodies' (body_weight) where a fit converged;
     person pixels a mesh does not cover, the mask's soft edge included, take their nearest
     covered pixel's shading (stage_raytrace). `--shadows half` traces every second pixel's rays
-    (traced)."""
+    (traced); step: another pixel step for the rays than `--shadows` gives."""
     spp, target = sampling_effort(options)
     wanted = frame.crop_mask > 0
     blended = frame.body_scene is not None
     own_target, body_target = blend_targets(target, BODY_SHADING_WEIGHT, body_shading_pixels(frame).all()) \
         if blended and target is not None else (target, target)
-    step = SHADOW_STEP[options.shadows]
+    step = SHADOW_STEP[options.shadows] if step is None else step
     own, result = traced(frame.scene, frame.hits, light, spp, own_target, options.seed, options.threads,
                          wanted, step)
     shading, note = np.ascontiguousarray(own[..., :3]), {**_trace_note(result), "shadow_step": step,

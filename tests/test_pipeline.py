@@ -230,6 +230,22 @@ def test_albedo_is_the_photo_over_the_estimated_shading_or_the_nets(source):
     assert dark < 0.25 < bright
 
 
+def test_the_input_lights_shading_is_traced_on_a_coarser_grid_unless_every_pixel_is_asked_for():
+    # The solved input light is a 16x32 map: soft shadows, so `--shadows half` traces its
+    # shading (which the albedo divides by) on a grid of ~128 pixels across the crop (every
+    # fourth pixel at 512, every second at 256, as the target's); `full` every pixel
+    image, mask = photo_with_person()
+    runs = {}
+    for resolution, shadows in ((512, "half"), (512, "full"), (256, "half")):
+        options = RelightOptions(outputs=("albedo",), method="sh9", resolution=resolution, spp=4, shadows=shadows)
+        frame, _ = run_stages(image, mask, np.ones((8, 16, 3), np.float32), options, ItemReport("x"),
+                              StandInModels(albedo=0.25, input_light=0.6))
+        runs[resolution, shadows] = frame.notes["delight"]["input_shading"]
+        assert np.isfinite(frame.albedo).all()
+    assert [run["shadow_step"] for run in runs.values()] == [4, 1, 2]
+    assert 0 < runs[512, "half"]["rays"] < 0.15 * runs[512, "full"]["rays"]
+
+
 def test_people_and_mask_stages_run_only_without_alpha(monkeypatch):
     from relightcli import pipeline
 

@@ -80,9 +80,11 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                                f"{DEFAULT_SPP_CAP} samples (default {DEFAULT_TARGET_ERROR})")
     parser.add_argument("--shadows", choices=tuple(SHADOW_STEP), default=DEFAULT_SHADOWS,
                         help="where rays are traced for cast shadows and occlusion: 'half' (default) "
-                             "every second pixel of the crop, the visibility they find applied to "
-                             "every pixel's own shading (normals keep full detail; the ray tracing "
-                             "takes ~0.6x the time, the eval scores the same); 'full' every pixel")
+                             "every second pixel of the crop (every fourth at 512 for the solved "
+                             "input light, a 16x32 map with soft shadows), the visibility they find "
+                             "applied to every pixel's own shading (normals keep full detail; the "
+                             "ray tracing takes ~0.6x the time, the eval scores the same); 'full' "
+                             "every pixel")
     parser.add_argument("--seed", type=seed_value, default=0,
                         help="random seed >= 0 (an item's outputs depend on its input, the options and the seed only)")
     low, high = RESOLUTION_RANGE

@@ -226,14 +226,35 @@ def solve_light(transport: Transport, photo: np.ndarray, albedo: np.ndarray, wei
     return LightSolve(light.reshape(height, width, 3).astype(np.float32), residual, int(used.sum()))
 
 
+# Active-set swaps tried before the quadratic solve falls back to scipy's NNLS
+ACTIVE_SET_ROUNDS = 20
+
+
 def _nonnegative_quadratic(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """argmin over x >= 0 of x.gram.x / 2 - rhs.x, gram symmetric positive definite: with
-    gram = R^T R (Cholesky), the same as min |R x - R^-T rhs| over x >= 0, which scipy's NNLS
-    solves exactly on the H*W rows (~30 ms for 512 texels; L-BFGS-B took 25x longer and
-    stopped 1% short)."""
-    from scipy.linalg import cho_factor, solve_triangular
+    """argmin over x >= 0 of x.gram.x / 2 - rhs.x, gram symmetric positive definite.
+
+    A primal-dual active set (block principal pivoting, Kim and Park 2011): every texel starts
+    free; each round solves the free texels' equations with the others at zero, then frees
+    every fixed texel whose multiplier (the gradient) is negative and fixes every free one that
+    came out non-positive. When no texel moves, the KKT conditions hold and x is the exact
+    minimum. The solved lights light most texels (475-492 of 512 on the example), so this
+    takes ~4 Cholesky solves; scipy's NNLS (Lawson-Hanson, on gram = R^T R as min |R x - R^-T
+    rhs|) adds the texels one at a time and took 2.5-3.5x longer for the same x (within 1e-14).
+    It is the fallback when the swaps do not settle in ACTIVE_SET_ROUNDS rounds (they can cycle)."""
+    from scipy.linalg import cho_factor, cho_solve, solve_triangular
     from scipy.optimize import nnls
 
+    free = np.ones(rhs.size, bool)
+    tolerance = 1e-12 * max(float(np.abs(rhs).max()), 1e-300)
+    for _ in range(ACTIVE_SET_ROUNDS):
+        x = np.zeros(rhs.size)
+        if free.any():
+            x[free] = cho_solve(cho_factor(gram[np.ix_(free, free)]), rhs[free])
+        gradient = gram @ x - rhs
+        fix, release = free & (x <= 0.0), ~free & (gradient < -tolerance)
+        if not (fix.any() or release.any()):
+            return x
+        free = (free & ~fix) | release
     upper, _ = cho_factor(gram, lower=False)
     r = np.triu(upper)
     x, _ = nnls(r, solve_triangular(r, rhs, trans="T"), maxiter=50 * rhs.size)

@@ -193,3 +193,28 @@ def test_the_tabulated_unoccluded_transport_matches_the_direct_sum():
     np.testing.assert_allclose(exact.sum(axis=1), 1.0, atol=1e-3)  # the whole hemisphere (4x4 quadrature)
     light = rng.random((512, 3))
     assert np.abs(table @ light - exact @ light).max() < 1e-3 * (exact @ light).mean()
+
+
+@pytest.mark.parametrize("fixed_share", [0.0, 0.05, 0.5, 1.0])
+def test_the_nonnegative_solve_is_scipys_nnls(fixed_share, monkeypatch):
+    """The active-set solve finds scipy's NNLS minimum (its fallback), whether no texel, a
+    few, half or all of them end at zero, and the fallback itself runs when the swaps do not
+    settle."""
+    from scipy.optimize import nnls
+
+    from relightcli.render import inverse
+
+    rng = np.random.default_rng(int(fixed_share * 100))
+    n = 200
+    basis = rng.normal(size=(n + 50, n))
+    gram = basis.T @ basis + 0.1 * np.eye(n)
+    truth = rng.uniform(0.5, 2.0, n) * (rng.random(n) >= fixed_share)
+    rhs = gram @ truth - (truth == 0) * rng.uniform(0.1, 1.0, n)  # a positive multiplier where x = 0
+    upper = np.linalg.cholesky(gram).T
+    expected, _ = nnls(upper, np.linalg.solve(upper.T, rhs), maxiter=50 * n)
+    solved = inverse._nonnegative_quadratic(gram, rhs)
+    assert (solved >= 0).all()
+    np.testing.assert_allclose(solved, expected, atol=1e-9 * max(expected.max(), 1.0))
+    np.testing.assert_array_equal(solved > 0, truth > 0)
+    monkeypatch.setattr(inverse, "ACTIVE_SET_ROUNDS", 0)
+    np.testing.assert_allclose(inverse._nonnegative_quadratic(gram, rhs), expected, atol=1e-9 * max(expected.max(), 1.0))
