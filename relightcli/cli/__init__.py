@@ -70,7 +70,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
                         help="albedo: 'solve' (default) solves the input light by inverse rendering on "
                              "the mesh and divides the photo by its ray-traced shading (cast shadows "
                              "leave the albedo); 'ratio' divides by the SH-9 shading of the de-lighting "
-                             "net's light at the predicted normals (~0.45 s less at 512); 'net' keeps "
+                             "net's light at the predicted normals (~0.25-0.5 s less at 512); 'net' keeps "
                              "the de-lighting net's own albedo (the paper's)")
     sampling = parser.add_mutually_exclusive_group()
     sampling.add_argument("--spp", type=spp_value, metavar="N",
