@@ -218,3 +218,28 @@ def test_the_nonnegative_solve_is_scipys_nnls(fixed_share, monkeypatch):
     np.testing.assert_array_equal(solved > 0, truth > 0)
     monkeypatch.setattr(inverse, "ACTIVE_SET_ROUNDS", 0)
     np.testing.assert_allclose(inverse._nonnegative_quadratic(gram, rhs), expected, atol=1e-9 * max(expected.max(), 1.0))
+
+
+def test_the_solved_light_keeps_a_floor_under_the_prior_where_the_pixels_ask_for_less_than_none():
+    # A sphere lit from above only, seen with a noisy albedo: unfloored, the solve blacks out
+    # texels; with the default floor every texel keeps at least that share of the prior's
+    # light (times the solve's colour gains), and the pixels are fitted about as well
+    scene = sphere_scene()
+    truth = sky_light()
+    truth[8:] = 0.0  # no light from below the horizon
+    geometry, shading = render(scene, truth, spp=64)
+    pixels = np.flatnonzero(geometry.mask)
+    albedo = np.random.default_rng(0).uniform(0.3, 0.7, (pixels.size, 3))
+    photo = albedo * shading.reshape(-1, 3)[pixels]
+    transport = light_transport(scene, geometry, pixels, samples=64, seed=0)
+    prior = sky_light()
+    unfloored = solve_light(transport, photo, np.full((pixels.size, 3), 0.5), np.ones(pixels.size), prior, floor=0.0)
+    floored = solve_light(transport, photo, np.full((pixels.size, 3), 0.5), np.ones(pixels.size), prior)
+    assert (unfloored.light.sum(axis=-1) == 0).any()
+    grey_prior = prior.mean(axis=-1)
+    share = floored.light.mean(axis=-1) / grey_prior
+    assert share.min() > 0.0 and np.all(np.isfinite(floored.light))
+    # the texels the pixels pushed down sit on the floor: one share of the prior for all of them
+    assert (share <= share.min() * (1 + 1e-6)).sum() >= 2
+    assert max(floored.residual) <= max(unfloored.residual) + 0.02
+    scene.close()
