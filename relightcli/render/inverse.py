@@ -63,6 +63,8 @@ def light_transport(scene, geometry, pixels: np.ndarray, *, samples: int = 64, s
     normal = geometry.normal.reshape(-1, 3)[pixels]
     g = geometry.geometric_normal.reshape(-1, 3)[pixels]
     matrix = unoccluded_transport(normal, height)
+    if samples <= 0:  # the unoccluded transport alone
+        return Transport(matrix, pixels, (height, width))
     origins, g = lifted_origins(scene, position.astype(np.float64), normal.astype(np.float64), g, lift)
     rng = np.random.default_rng(seed)
     side = int(np.ceil(np.sqrt(samples)))
