@@ -214,6 +214,7 @@ def solve_light(transport: Transport, photo: np.ndarray, albedo: np.ndarray, wei
     targets = w[used, None] * photo[used]
     row_norms = np.einsum("pj,pj->p", matrix, matrix)
     grey_prior = np.asarray(prior, np.float64).reshape(-1, 3).mean(axis=1)
+    lower = floor * np.maximum(grey_prior, 0.0)  # the shape's floor per texel
     first, second, weight = smoothness_edges(height, width)
     edge_weights = np.ones(first.size)
     gains = np.ones(3)
@@ -225,7 +226,6 @@ def solve_light(transport: Transport, photo: np.ndarray, albedo: np.ndarray, wei
         weighted = matrix * np.sqrt(row_weight)[:, None]
         gram = weighted.T @ weighted + size * regulariser
         rhs = matrix.T @ (scale * gains * targets).sum(axis=1) + size * prior_weight * omega * grey_prior
-        lower = floor * np.maximum(grey_prior, 0.0)
         shape = lower + _nonnegative_quadratic(gram, rhs - gram @ lower)
         fits = scale * (matrix @ shape)[:, None]  # (P, 3) before the gains
         gains = np.maximum((fits * targets).sum(axis=0), 0.0) / np.maximum(np.square(fits).sum(axis=0), 1e-30)
