@@ -23,7 +23,7 @@ from scipy.stats import qmc
 
 from relightcli.errors import UsageError
 from relightcli.render.camera import PixelGeometry
-from relightcli.render.environment import EnvironmentLight
+from relightcli.render.environment import EnvironmentLight, TabulatedSampling
 from relightcli.render.estimators import (
     BOUNCE_DIMENSIONS,
     DIMENSIONS,
@@ -58,6 +58,20 @@ POOL_FLOOR = 0.5
 # Under a time budget alone, pixels whose pooled error is below this share of the median
 # stop early (unoccluded pixels are exact with the control variate): the rest get their passes
 NEGLIGIBLE_SHARE = 0.25
+# Environment samples drawn ahead (environment.TabulatedSampling), once per render: a sample
+# then costs a gather, not ~170-220 ns of cdf search and direction. The table has one entry
+# per SAMPLE_TABLE_SHARE samples the render may draw (pixels x spp; a power of two of rows,
+# at most SAMPLE_TABLE_MAX_ROWS, none below SAMPLE_TABLE_MIN_ROWS), so it costs an eighth of
+# what it saves at the most; its cells are 1 / rows of the first uniform (which runs through
+# the map's cells in row-major order: at 16384 rows 2 sky cells of a 1k map) by 1 /
+# SAMPLE_TABLE_COLUMNS of the second. At 1024 spp the error stays as without a table, where
+# 256 x 256 cells (each spanning a row of the map) raised it 1.7x. 64 spp at 512: 48-54% ->
+# 57-59% of raw Embree's ray rate under a hard sun, 47-51% -> 53-60% overcast
+# (bench_integrator.py --throughput, alternated runs)
+SAMPLE_TABLE_SHARE = 8
+SAMPLE_TABLE_COLUMNS = 4
+SAMPLE_TABLE_MAX_ROWS = 16384
+SAMPLE_TABLE_MIN_ROWS = 256
 
 
 @dataclass
@@ -260,6 +274,9 @@ class _Run:
         # Tabulated unoccluded shading for the control-variate terms, once per pixel
         self.unoccluded = [light.irradiance(self.normals) if strategy == "mis-cv" else None
                            for light, strategy in plan.terms]
+        shape = _table_shape(pixels.size * spp)
+        if shape is not None:
+            self.plan = plan = _tabulated(plan, shape, seed)
         self.sampler, self.seed, self.pixel_count = sampler, seed, pixels.size
         # The mask's bounding box, grown by the pooling radius: where stopping_error filters
         rows, cols = np.divmod(pixels, geometry.mask.shape[1])
@@ -336,6 +353,23 @@ class _Run:
                                        self.uniforms("bounce", first_pass, passes, rows),
                                        self.albedo_at)
         return value.reshape(passes, rows.size, 3)
+
+
+def _table_shape(samples: int) -> tuple[int, int] | None:
+    """The (rows, columns) of the sample tables of a render that may draw `samples` samples
+    a term, or None for none (see SAMPLE_TABLE_SHARE)."""
+    entries = int(samples) // (SAMPLE_TABLE_SHARE * SAMPLE_TABLE_COLUMNS)
+    rows = min(SAMPLE_TABLE_MAX_ROWS, 1 << max(entries.bit_length() - 1, 0))
+    return (rows, SAMPLE_TABLE_COLUMNS) if entries and rows >= SAMPLE_TABLE_MIN_ROWS else None
+
+
+def _tabulated(plan: LightingPlan, shape: tuple, seed: int) -> LightingPlan:
+    """The plan with the environment-sampled terms' samples drawn ahead in tables of `shape`,
+    once per render (deterministic in the seed; forked workers inherit the tables)."""
+    terms = tuple((TabulatedSampling(light, shape, np.random.default_rng([seed, 4, index]))
+                   if strategy in ("mis", "mis-cv", "env") else light, strategy)
+                  for index, (light, strategy) in enumerate(plan.terms))
+    return LightingPlan(plan.name, plan.light, terms)
 
 
 def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, workers):

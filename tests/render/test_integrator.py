@@ -9,11 +9,21 @@ import trimesh
 from render_testing import merge, one_hot_map, quad
 from relightcli.io.envmap import uv_to_direction
 from relightcli.render.camera import default_rect, render_pixel_geometry
-from relightcli.render.environment import EnvironmentLight
+from relightcli.render.environment import EnvironmentLight, TabulatedSampling
 from relightcli.render.integrator import ambient_occlusion, shade_environment
 from relightcli.render.scene import Scene
 
 L_CONST = np.array([0.7, 1.4, 2.1], np.float32)
+
+
+@pytest.fixture(params=["drawn", "tabulated"])
+def env_samples(request, monkeypatch):
+    """Runs a test twice: environment samples drawn per sample, and drawn ahead in a table
+    (environment.TabulatedSampling), which large renders use."""
+    import relightcli.render.integrator as integrator
+
+    monkeypatch.setattr(integrator, "SAMPLE_TABLE_MIN_ROWS", 1 if request.param == "tabulated" else 1 << 40)
+    return request.param
 
 
 def _sphere_scene(radius=1.0, offset=(0.0, 0.0, 0.0), smooth=False, subdivisions=3):
@@ -38,7 +48,7 @@ def test_furnace_mis_is_exact_for_a_constant_map():
 
 @pytest.mark.parametrize("strategy", ["env", "uniform", "cosine"])
 @pytest.mark.parametrize("sampler", ["sobol", "independent"])
-def test_furnace_within_reported_error(strategy, sampler):
+def test_furnace_within_reported_error(strategy, sampler, env_samples):
     scene = _sphere_scene()
     geometry = _sphere_geometry(scene)
     light = EnvironmentLight(np.broadcast_to(L_CONST, (8, 16, 3)))
@@ -154,7 +164,7 @@ def _soft_map(height=32):
 
 @pytest.mark.parametrize("sampler", ["sobol", "independent"])
 @pytest.mark.parametrize("map_name", ["soft", "hard_sun"])
-def test_reported_error_is_within_factor_two_of_true_rmse(map_name, sampler):
+def test_reported_error_is_within_factor_two_of_true_rmse(map_name, sampler, env_samples):
     env = _soft_map() if map_name == "soft" else _sun_and_sky_map()
     vertices, faces = merge(quad(-3.0, 3.0, -3.0, 3.0, 0.0),
                             (trimesh.creation.icosphere(2, 1.0).vertices + [0.0, 0.0, 1.0],
@@ -190,7 +200,7 @@ def test_target_error_is_reached_and_samples_go_where_the_error_is():
     assert passes.min() >= 16 and passes.max() > 2 * passes.min()
 
 
-def test_target_error_holds_against_a_converged_reference_under_a_hard_sun():
+def test_target_error_holds_against_a_converged_reference_under_a_hard_sun(env_samples):
     """Adaptive stopping must not trust a pixel whose few samples missed a rare occluder
     (with the control variate its own error estimate is then 0): the true median error
     stays within the target and the reported one tells the truth."""
@@ -232,7 +242,7 @@ def test_time_budget_stops_sampling():
 
 
 @pytest.mark.parametrize("sampler", ["sobol", "independent"])
-def test_same_seed_same_image(sampler):
+def test_same_seed_same_image(sampler, env_samples):
     scene, geometry = _body_like_scene()
     light = EnvironmentLight(_sun_and_sky_map())
     a = shade_environment(scene, geometry, light, spp=8, seed=5, sampler=sampler)
@@ -244,7 +254,7 @@ def test_same_seed_same_image(sampler):
 
 @pytest.mark.parametrize("round_rays", [None, 2048])  # 2048: many rounds, each capped by its rays
 @pytest.mark.parametrize("target_error", [None, 0.05])
-def test_two_workers_give_the_same_image_as_one(target_error, round_rays, monkeypatch):
+def test_two_workers_give_the_same_image_as_one(target_error, round_rays, monkeypatch, env_samples):
     import relightcli.render.integrator as integrator
 
     if round_rays is not None:
@@ -284,6 +294,22 @@ def test_forked_workers_leave_stopping_to_the_parent():
 
 
 # ------------------------------------------------------------------ doing only what is needed
+@pytest.mark.parametrize("spp, tables", [(8, 0), (64, 2)])
+def test_renders_with_enough_samples_draw_the_environments_samples_ahead(spp, tables, monkeypatch):
+    # sun + sky: two environment-sampled terms, a table each, once per render, of about one
+    # entry per SAMPLE_TABLE_SHARE samples: 576 pixels x 8 samples make 576 entries, fewer than
+    # SAMPLE_TABLE_MIN_ROWS rows of 4; x 64 samples 4608, 1024 rows of 4
+    import relightcli.render.integrator as integrator
+
+    made = []
+    monkeypatch.setattr(integrator, "TabulatedSampling",
+                        lambda *args: made.append(args) or TabulatedSampling(*args))
+    scene, geometry = _body_like_scene()
+    result = shade_environment(scene, geometry, EnvironmentLight(_sun_and_sky_map()), spp=spp)
+    assert result.strategy == "sun+mis-cv" and len(made) == tables
+    assert all(shape == (1024, 4) for _, shape, _ in made)
+
+
 def test_black_map_traces_nothing():
     scene, geometry = _body_like_scene()
     result = shade_environment(scene, geometry, EnvironmentLight(np.zeros((8, 16, 3), np.float32)))
@@ -321,7 +347,7 @@ def _sky_gradient(height=32):
     return np.stack([up * side, up, up / side], axis=-1).astype(np.float32)
 
 
-def test_control_variate_is_exact_where_nothing_occludes():
+def test_control_variate_is_exact_where_nothing_occludes(env_samples):
     # A convex sphere with flat normals: no shadow ray is blocked, so every sample of the
     # occluded part is zero and the estimate is the tabulated unoccluded shading itself
     scene = _sphere_scene()
@@ -338,7 +364,7 @@ def test_control_variate_is_exact_where_nothing_occludes():
     assert np.all(deviation <= 5 * plain.stderr[geometry.mask] + 0.005 * plain.mean[geometry.mask])
 
 
-def test_control_variate_is_unbiased_and_less_noisy_under_occlusion():
+def test_control_variate_is_unbiased_and_less_noisy_under_occlusion(env_samples):
     # A plane under a square roof: every plane pixel is partly occluded
     vertices, faces = merge(quad(-4.0, 4.0, -4.0, 4.0, 0.0), quad(-1.5, 1.5, -1.5, 1.5, 1.0))
     scene = Scene(vertices, faces)
