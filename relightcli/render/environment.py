@@ -239,8 +239,8 @@ class TabulatedSampling:
     a uniform u the sample is distributed as the light's own (its pdf and radiance are the
     light's). The shared draw adds an error common to every pixel, that of a stratified
     estimate over m x n strata, small against a pixel's own at the sample counts rendered
-    (the integrator's tests check the reported error with and without a table). Radiance and
-    pdf lookups of given directions (`eval`, `eval_pdf`, `pdf`, `irradiance`) are the light's."""
+    (the integrator's tests check the reported error with and without a table). `eval_pdf`, the
+    lookup of given directions that MIS needs, is the light's."""
 
     def __init__(self, light: EnvironmentLight, shape: tuple, rng: np.random.Generator):
         self.light, self.shape = light, (int(shape[0]), int(shape[1]))
@@ -260,17 +260,8 @@ class TabulatedSampling:
         return (directions if dtype == np.float32 else directions.astype(dtype),
                 np.take(self.pdf_table, index), np.take(self.radiance_table, index, axis=0))
 
-    def eval(self, directions):
-        return self.light.eval(directions)
-
     def eval_pdf(self, directions):
         return self.light.eval_pdf(directions)
-
-    def pdf(self, directions):
-        return self.light.pdf(directions)
-
-    def irradiance(self, normals):
-        return self.light.irradiance(normals)
 
 
 def sampling_cell(height: int, width: int) -> int:

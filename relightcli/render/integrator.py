@@ -61,8 +61,8 @@ NEGLIGIBLE_SHARE = 0.25
 # Environment samples drawn ahead (environment.TabulatedSampling), once per render: a sample
 # then costs a gather, not ~170-220 ns of cdf search and direction. The table has one entry
 # per SAMPLE_TABLE_SHARE samples the render may draw (pixels x spp; a power of two of rows,
-# at most SAMPLE_TABLE_MAX_ROWS, none below SAMPLE_TABLE_MIN_ROWS), so it costs an eighth of
-# what it saves at the most; its cells are 1 / rows of the first uniform (which runs through
+# at most SAMPLE_TABLE_MAX_ROWS, none below SAMPLE_TABLE_MIN_ROWS): drawing it costs at most an
+# eighth of drawing every sample. Its cells are 1 / rows of the first uniform (which runs through
 # the map's cells in row-major order: at 16384 rows 2 sky cells of a 1k map) by 1 /
 # SAMPLE_TABLE_COLUMNS of the second. At 1024 spp the error stays as without a table, where
 # 256 x 256 cells (each spanning a row of the map) raised it 1.7x. 64 spp at 512: 48-54% ->
@@ -358,9 +358,10 @@ class _Run:
 def _table_shape(samples: int) -> tuple[int, int] | None:
     """The (rows, columns) of the sample tables of a render that may draw `samples` samples
     a term, or None for none (see SAMPLE_TABLE_SHARE)."""
-    entries = int(samples) // (SAMPLE_TABLE_SHARE * SAMPLE_TABLE_COLUMNS)
-    rows = min(SAMPLE_TABLE_MAX_ROWS, 1 << max(entries.bit_length() - 1, 0))
-    return (rows, SAMPLE_TABLE_COLUMNS) if entries and rows >= SAMPLE_TABLE_MIN_ROWS else None
+    rows = int(samples) // (SAMPLE_TABLE_SHARE * SAMPLE_TABLE_COLUMNS)
+    if rows < SAMPLE_TABLE_MIN_ROWS:
+        return None
+    return min(SAMPLE_TABLE_MAX_ROWS, 1 << (rows.bit_length() - 1)), SAMPLE_TABLE_COLUMNS
 
 
 def _tabulated(plan: LightingPlan, shape: tuple, seed: int) -> LightingPlan:
