@@ -100,6 +100,9 @@ class EnvironmentLight:
         self.is_constant = bool(np.all(spread <= CONSTANT_TOLERANCE * np.maximum(flat.max(axis=0), 1e-30)))
         self.constant_radiance = flat.mean(axis=0).astype(np.float64) if self.is_constant else None
         self.sun_fraction = _top_energy_fraction(energy, 0.001)
+        # Share of the sphere (by solid angle) whose texels are black in every channel
+        solid = texel_solid_angles(height, width)
+        self.black_fraction = float(solid[~(flat.reshape(height, width, 3) > 0).any(axis=2)].sum() / solid.sum())
         self.is_sun_only = (not self.is_black) and self.sun_fraction >= SUN_ENERGY_FRACTION
         self._sun_and_sky = None
         self._coarse = None
@@ -244,6 +247,7 @@ class TabulatedSampling:
 
     def __init__(self, light: EnvironmentLight, shape: tuple, rng: np.random.Generator):
         self.light, self.shape = light, (int(shape[0]), int(shape[1]))
+        self.black_fraction = light.black_fraction
         first, second = self.shape
         corner = np.stack(np.divmod(np.arange(first * second), second), axis=1).astype(np.float64)
         u = (corner + rng.random(corner.shape)) / np.array(self.shape, np.float64)

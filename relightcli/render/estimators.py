@@ -27,6 +27,10 @@ from relightcli.render.scene import Hits, Scene, orient_normals
 DIMENSIONS = {"mis": 4, "mis-cv": 4, "env": 2, "cosine": 2, "uniform": 2}
 BOUNCE_DIMENSIONS = 4
 RAYS_PER_SAMPLE = {"mis": 2, "mis-cv": 2, "env": 1, "cosine": 1, "uniform": 1}
+# The control variate's cosine rays are traced before the map is looked up (only blocked rays
+# need it: `_blocked_cosine_contribution`) when at most this share of the sphere is black; on
+# maps with more, rays toward black texels would be traced for nothing
+TRACE_FIRST_MAX_BLACK = 0.02
 
 
 def dot(a, b):
@@ -116,12 +120,16 @@ def _direct(scene, light, points, n, g, u, strategy, max_distance, complement):
     if strategy == "mis":
         # Two shadow-ray sets, one per technique; each weighted by the summed pdfs
         w_env, pdf_env, radiance_env = light.sample_radiance(u[:, 0:2], np.float32)
-        w_cos = cosine_directions(n, u[:, 2:4])
-        radiance_cos, pdf_env_cos = light.eval_pdf(w_cos)
-        cos_env, cos_cos = dot(n, w_env), dot(n, w_cos)
+        cos_env = dot(n, w_env)
         from_env = _unoccluded_contribution(
             scene, points, g, w_env, cos_env, pdf_env + cosine_hemisphere_pdf(cos_env),
             radiance_env, max_distance, complement)
+        w_cos = cosine_directions(n, u[:, 2:4])
+        cos_cos = dot(n, w_cos)
+        if complement and light.black_fraction <= TRACE_FIRST_MAX_BLACK:
+            return from_env + _blocked_cosine_contribution(scene, light, points, g, w_cos, cos_cos,
+                                                           max_distance)
+        radiance_cos, pdf_env_cos = light.eval_pdf(w_cos)
         return from_env + _unoccluded_contribution(
             scene, points, g, w_cos, cos_cos, pdf_env_cos + cosine_hemisphere_pdf(cos_cos),
             radiance_cos, max_distance, complement)
@@ -155,6 +163,25 @@ def _unoccluded_contribution(scene, points, g, directions, cosine, pdf, radiance
     v = visible(scene, points, g, directions, (weight > 0) & lit, max_distance)
     # float32 per sample (radiance is float32); the running sums are float64
     return radiance * (weight * (v - 1.0 if complement else v)).astype(np.float32)[:, None]
+
+
+def _blocked_cosine_contribution(scene, light, points, g, directions, cosine, max_distance):
+    """The cosine technique's share of `_unoccluded_contribution(..., complement=True)`:
+    -f(w) (1 - V(w)) over the summed pdfs, which is zero wherever the ray gets through, so the
+    rays are traced first and the map is looked up (radiance, environment pdf) only for the
+    blocked ones (on a body, most cosine rays escape). The same values as computed for every
+    row, but rays toward black texels are traced too (their rows add zero): for lights with
+    little black (TRACE_FIRST_MAX_BLACK)."""
+    result = np.zeros((points.shape[0], 3), np.float32)
+    blocked = np.flatnonzero((cosine > 0) & ~visible(scene, points, g, directions, cosine > 0,
+                                                     max_distance))
+    if blocked.size:
+        radiance, pdf_env = light.eval_pdf(np.take(directions, blocked, axis=0))
+        cosine = np.take(cosine, blocked).astype(np.float64)
+        pdf = pdf_env + cosine_hemisphere_pdf(cosine)
+        weight = np.where(pdf > 0, cosine * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
+        result[blocked] = radiance * (-weight).astype(np.float32)[:, None]
+    return result
 
 
 def indirect_lighting(scene, light, points, n, g, u, albedo_at):

@@ -474,3 +474,37 @@ def test_ambient_occlusion_ignores_occluders_beyond_max_distance(max_distance, e
     scene, geometry = _floor_and_wall()
     result = ambient_occlusion(scene, geometry, spp=4096, max_distance=max_distance)
     np.testing.assert_allclose(result.mean[geometry.mask], expected, atol=4 * result.stderr.max() + 1e-3)
+
+
+# ------------------------------------------------------------------ trace first, look up after
+def test_the_control_variates_cosine_rays_are_traced_before_the_map_is_read(monkeypatch):
+    # Only blocked cosine rays carry the control variate's correction: looking the map up
+    # after tracing gives the same image bit for bit ...
+    import relightcli.render.estimators as estimators
+
+    scene, geometry = _body_like_scene()
+    light = EnvironmentLight(_sun_and_sky_map())
+    after = shade_environment(scene, geometry, light, spp=16, seed=2)
+    monkeypatch.setattr(estimators, "TRACE_FIRST_MAX_BLACK", -1.0)
+    before = shade_environment(scene, geometry, light, spp=16, seed=2)
+    np.testing.assert_array_equal(after.mean, before.mean)
+    np.testing.assert_array_equal(after.stderr, before.stderr)
+    # ... tracing more rays only where texels are black (the sun's, taken out of the sky)
+    assert before.rays <= after.rays <= 1.01 * before.rays
+
+
+def test_a_map_with_a_black_half_is_read_before_its_rays_are_traced(monkeypatch):
+    # Rays toward the black lower half would be traced for nothing: that map is read first
+    import relightcli.render.estimators as estimators
+
+    env = _soft_map()
+    env[env.shape[0] // 2:] = 0.0
+    light = EnvironmentLight(env)
+    assert light.black_fraction == pytest.approx(0.5)
+    scene = _sphere_scene(smooth=True)
+    geometry = _sphere_geometry(scene)
+    read_first = shade_environment(scene, geometry, light, spp=16, seed=2)
+    monkeypatch.setattr(estimators, "TRACE_FIRST_MAX_BLACK", 1.0)
+    traced_first = shade_environment(scene, geometry, light, spp=16, seed=2)
+    np.testing.assert_array_equal(read_first.mean, traced_first.mean)
+    assert read_first.strategy == "mis-cv" and read_first.rays < traced_first.rays
