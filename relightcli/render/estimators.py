@@ -156,9 +156,7 @@ def _unoccluded_contribution(scene, points, g, directions, cosine, pdf, radiance
                              max_distance, complement=False):
     """f(w) V(w) / pdf per row, f = L max(0, cos) / pi: (N, 3) float32; zero where f or
     the pdf is zero, and no ray is traced there. complement: -f(w) (1 - V(w)) / pdf."""
-    # float64, as the pdfs: a cosine-sampled weight is then exactly 1 (cos / pi over cos / pi)
-    cosine = np.maximum(cosine, 0.0).astype(np.float64)
-    weight = np.where(pdf > 0, cosine * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
+    weight = _weight(cosine, pdf)
     lit = (radiance[:, 0] > 0) | (radiance[:, 1] > 0) | (radiance[:, 2] > 0)
     v = visible(scene, points, g, directions, (weight > 0) & lit, max_distance)
     # float32 per sample (radiance is float32); the running sums are float64
@@ -173,15 +171,21 @@ def _blocked_cosine_contribution(scene, light, points, g, directions, cosine, ma
     row, but rays toward black texels are traced too (their rows add zero): for lights with
     little black (TRACE_FIRST_MAX_BLACK)."""
     result = np.zeros((points.shape[0], 3), np.float32)
-    blocked = np.flatnonzero((cosine > 0) & ~visible(scene, points, g, directions, cosine > 0,
-                                                     max_distance))
+    up = cosine > 0
+    blocked = np.flatnonzero(up & ~visible(scene, points, g, directions, up, max_distance))
     if blocked.size:
         radiance, pdf_env = light.eval_pdf(np.take(directions, blocked, axis=0))
-        cosine = np.take(cosine, blocked).astype(np.float64)
-        pdf = pdf_env + cosine_hemisphere_pdf(cosine)
-        weight = np.where(pdf > 0, cosine * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
+        cosine = np.take(cosine, blocked)
+        weight = _weight(cosine, pdf_env + cosine_hemisphere_pdf(cosine))
         result[blocked] = radiance * (-weight).astype(np.float32)[:, None]
     return result
+
+
+def _weight(cosine, pdf):
+    """max(0, cos) / pi over the pdf, float64 as the pdfs (a cosine-sampled weight is then
+    exactly 1), zero where the pdf is."""
+    cosine = np.maximum(cosine, 0.0).astype(np.float64)
+    return np.where(pdf > 0, cosine * INV_PI / np.where(pdf > 0, pdf, 1.0), 0.0)
 
 
 def indirect_lighting(scene, light, points, n, g, u, albedo_at):
