@@ -94,6 +94,15 @@ def crop_square(image: np.ndarray, box: CropBox) -> np.ndarray:
     return out.reshape((box.resolution, box.resolution) + image.shape[2:])
 
 
+def outside_photo(box: CropBox, height: int, width: int) -> np.ndarray:
+    """(R, R) bool: the working crop's pixels whose centres fall beyond a height x width
+    photo's edge (the padded part of a box that reaches outside it)."""
+    centres = (np.arange(box.resolution) + 0.5) * box.scale
+    rows = (box.y0 + centres < 0) | (box.y0 + centres >= height)
+    cols = (box.x0 + centres < 0) | (box.x0 + centres >= width)
+    return rows[:, None] | cols[None, :]
+
+
 def paste_back(crop: np.ndarray, box: CropBox, height: int, width: int, rows: slice | None = None) -> np.ndarray:
     """(R, R[, C]) crop -> (height, width[, C]) full frame, zero outside the box. Bilinear.
 

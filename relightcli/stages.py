@@ -368,7 +368,9 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
     """Front/back normals and depth of the person in the crop. With a converged body fit
     (stage_body_maps) the prior net refines the fitted bodies' maps into the clothed person's
     (relightcli.nets.geometry.GeometryPriorNet); without one, the net from the image alone.
-    Both run on the mirrored crop too (MIRROR_AVERAGED). The note says which ran and why."""
+    Both run on the mirrored crop too (MIRROR_AVERAGED). The note says which ran and why. The
+    front normals are then bent toward the silhouette's near the mask's outline."""
+    from relightcli.geometry.silhouette import blend_silhouette_normals
     from relightcli.nets.geometry import prior_channels
 
     maps = frame.body_maps
@@ -391,6 +393,10 @@ def stage_geometry(frame: Frame, options, models: Models) -> None:
         g = replace(g, front_normal=unit(resample(g.front_normal, size)), back_normal=unit(resample(g.back_normal, size)),
                     front_depth=resample(g.front_depth, size), back_depth=resample(g.back_depth, size),
                     mask=resample(g.mask, size))
+    # Near the person's outline the surface turns away from the camera: the net's normals are
+    # pulled toward the silhouette's there (relightcli.geometry.silhouette)
+    beyond = compose.outside_photo(frame.box, *frame.image.shape[:2])
+    g = replace(g, front_normal=blend_silhouette_normals(g.front_normal, frame.crop_mask > 0.5, beyond))
     frame.geometry = g
     frame.normal = g.front_normal * (frame.crop_mask[..., None] > 0.5)
 

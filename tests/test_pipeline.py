@@ -202,7 +202,7 @@ def test_a_soft_mask_is_applied_once_and_does_not_darken_the_layers():
 
 
 @pytest.mark.parametrize("source", ["solve", "ratio", "net"])
-def test_albedo_is_the_photo_over_the_estimated_shading_or_the_nets(source):
+def test_albedo_is_the_photo_over_the_estimated_shading_or_the_nets(source, stand_in_normals):
     # Under the stand-in's constant input light 0.6 every normal's SH-9 irradiance is 0.6: the
     # photo's two halves (0.3 and 0.15) divide into 0.5 and 0.25, which the ratio albedo keeps
     # as detail (2:1) at the net's level (a flat 0.25 lies between them); the light solved on
@@ -398,7 +398,7 @@ class SphereModels(StandInModels):
         return GeometryMaps(normals.astype(np.float32), normals * [1, 1, -1], z * inside, -z * inside, inside.astype(np.float32))
 
 
-def test_raytraced_ball_under_constant_light_is_white_furnace():
+def test_raytraced_ball_under_constant_light_is_white_furnace(stand_in_normals):
     # Reconstruct the stand-in ball, smooth it, ray-trace it under a constant environment:
     # an unoccluded convex surface has shading == L exactly (MIS is exact for a constant map).
     image = np.full((64, 64, 3), 0.3, np.float32)
@@ -458,7 +458,7 @@ def _ball_frame(models, resolution=48, shadows="half"):
     return frame, options
 
 
-def test_shadows_are_traced_on_every_second_pixel_unless_asked_for_every_pixel():
+def test_shadows_are_traced_on_every_second_pixel_unless_asked_for_every_pixel(stand_in_normals):
     half, _ = _ball_frame(SphereModels(), resolution=64)
     full, _ = _ball_frame(SphereModels(), resolution=64, shadows="full")
     assert (half.notes["raytrace"]["shadow_step"], full.notes["raytrace"]["shadow_step"]) == (2, 1)

@@ -81,7 +81,7 @@ class TrueNet:
         return self.maps
 
 
-def test_coarse_shading_of_the_true_geometry_matches_the_rendered_shading(tiny):
+def test_coarse_shading_of_the_true_geometry_matches_the_rendered_shading(tiny, stand_in_normals):
     data = dataset.open_dataset(tiny)
     for sample_id in data.ids("val"):
         sample, meta = data.load("val", sample_id), data.meta("val", sample_id)

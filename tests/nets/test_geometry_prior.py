@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from relightcli.compose import CropBox
 from relightcli.nets.geometry import PRIOR_CHANNELS, GeometryMaps, prior_channels
 
 
@@ -84,6 +85,7 @@ def _frame(with_body):
     from relightcli.stages import Frame
 
     frame = Frame(image=np.zeros((32, 32, 3), np.float32), mask=None, env=None)
+    frame.box = CropBox(x0=0, y0=0, size=32, resolution=32)
     frame.crop, frame.crop_mask = np.zeros((32, 32, 3), np.float32), np.ones((32, 32), np.float32)
     if with_body:
         mask, front, back, front_z, back_z = ball_maps(32)
@@ -106,3 +108,22 @@ def test_the_geometry_stage_uses_the_prior_net_only_with_a_fitted_body():
         if used == "geometry_prior":
             assert models.calls[0][1] == models.calls[1][1] == (32, 32, 9)
         assert frame.normal.shape == (32, 32, 3)
+
+
+def test_the_geometry_stage_bends_the_nets_normals_toward_the_outline_but_not_at_the_photos_edge():
+    from relightcli.pipeline import RelightOptions
+    from relightcli.stages import stage_geometry
+
+    # a person 40 px wide, cut by the photo's bottom edge (the crop reaches 32 px below it)
+    frame = _frame(with_body=False)
+    frame.image = np.zeros((96, 128, 3), np.float32)
+    frame.box = CropBox(x0=0, y0=0, size=128, resolution=128)
+    frame.crop = np.zeros((128, 128, 3), np.float32)
+    frame.crop_mask = np.zeros((128, 128), np.float32)
+    frame.crop_mask[20:96, 44:84] = 1.0
+    stage_geometry(frame, RelightOptions(resolution=128), _Models(False))
+    n = frame.normal  # the fake net sees a flat front everywhere
+    assert n[60, 44, 0] < -0.5 and n[60, 83, 0] > 0.5 and n[20, 64, 1] > 0.5  # sides and top
+    np.testing.assert_allclose(n[95, 64], [0, 0, 1], atol=0.02)  # the photo's edge: as the net said
+    np.testing.assert_allclose(n[60, 64], [0, 0, 1], atol=0.02)  # the middle: as the net said
+    assert not n[frame.crop_mask == 0].any()
