@@ -18,6 +18,14 @@ train=0.9,val=0.1 --resolution 256 --workers 2 --seed 0 --spp 128 --target-error
 data/factory256p data/evalval256 --split val`, then
 `relight eval data/evalval256 --resolution 256 --use-gt-mask` (the albedo's single gain was
 chosen on it).
+Two more validation sets at 256 (the outline's normals were chosen on them,
+relightcli.geometry.silhouette): `python -m export.factory.generate --out data/factory256v7
+--count 150 --splits val=1 --resolution 256 --workers 2 --seed 7 --spp 128 --target-error 0.03
+--bounces 2` then `python -m export.factory.eval_scenes data/factory256v7 data/evalval256v7
+--split val` (T-posed and fighting figures), and the same with `--out data/factory256t11
+--count 120 --splits train=1 --seed 11` then `eval_scenes data/factory256t11
+data/evaltrainpose256 --split train`: new people in the training split's poses (standing,
+resting, sitting...), which the validation poses lack.
 """
 
 from __future__ import annotations
