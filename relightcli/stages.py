@@ -706,8 +706,12 @@ def build_scene(frame: Frame, options) -> None:
 # The fitted bodies' share of the coarse shading where a fit converged (stage_raytrace): 0.5
 # chosen with the image-alone geometry net, 0.3 once the prior net shaped the reconstruction
 # (validation, true mask, shading / relit: 0.5 19.46 / 16.52, 0.3 19.65 / 16.54, 0 18.83 / 16.13;
-# python bench/bench_geometry_prior.py data/evalval512 --use-gt-mask --body-weight W)
-BODY_SHADING_WEIGHT = 0.3
+# python bench/bench_geometry_prior.py data/evalval512 --use-gt-mask --body-weight W), 0.2 once
+# the reconstruction's normals took the outline's (relightcli.geometry.silhouette): relit /
+# albedo / shading, 150 validation scenes at 256 17.917 / 18.292 / 19.961 -> 17.952 / 18.303 /
+# 20.032 (relit better in 89 of 150), 20 at 512 17.967 / 17.211 / 21.469 -> 17.976 / 17.213 /
+# 21.623 (0.4: 17.924 / 17.199 / 21.209)
+BODY_SHADING_WEIGHT = 0.2
 
 
 def stage_body_maps(frame: Frame, options, models: Models) -> None:
