@@ -39,9 +39,10 @@ from export.factory import dataset  # noqa: E402
 from relightcli import compose  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
-from relightcli.io.envmap import load_envmap, texel_directions, texel_solid_angles  # noqa: E402
+from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
+from relightcli.render.inverse import unoccluded_transport  # noqa: E402
 from relightcli.stages import Models  # noqa: E402
 
 # Background pixels: this far from the person's mask (px), so the outline's blend is left out
@@ -51,10 +52,9 @@ CLIPPED = 0.99
 
 def front_irradiance(light: np.ndarray) -> float:
     """The unoccluded irradiance (luminance, DESIGN.md units) of a normal facing the camera (+Z)
-    under an (H, 2H, 3) light."""
-    height, width = light.shape[:2]
-    cosine = np.maximum(texel_directions(height, width)[..., 2], 0.0)
-    return float(np.sum((light @ compose.LUMINANCE) * cosine * texel_solid_angles(height, width)) / np.pi)
+    under an (H, 2H, 3) light: the inverse-rendering solve's own transport of that normal."""
+    transport = unoccluded_transport(np.array([[0.0, 0.0, 1.0]]), light.shape[0])
+    return float((transport @ light.reshape(-1, 3))[0] @ compose.LUMINANCE)
 
 
 def albedo_level(albedo: np.ndarray, inside: np.ndarray) -> float:
