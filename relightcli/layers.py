@@ -58,7 +58,7 @@ LAYERS = {
         Layer("body_depth", "_body_depth", ".exr",
               "the fitted body's depth on the person, linear EXR: R front z, G back z (crop units: the crop "
               "spans [-1, 1], +z toward the camera), B 1 where a body is"),
-        Layer("light", "_light", ".hdr", "estimated input lighting, 32x16 lat-long HDR (solved on the mesh; "
+        Layer("light", "_light", ".hdr", "estimated input lighting, 32x16 lat-long HDR (solved on the mesh, grey; "
               "--albedo ratio|net: the de-lighting net's)"),
         Layer("preview", "_preview", ".png", "one sheet: input, albedo, normal, shading, relit, input light, env"),
     )
