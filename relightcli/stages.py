@@ -564,7 +564,7 @@ def solve_input_light(frame: Frame, net_albedo: np.ndarray, options, models: Mod
     light = grey_light(solve.light)
     net_level, level = (float(np.mean(x @ compose.LUMINANCE)) for x in (frame.light, light))
     frame.notes["delight"] = {
-        "light": "inverse rendering" if solve.pixels else "no usable pixel: the net's light",
+        "light": "inverse rendering" if solve.pixels else "no usable pixel: the net's light, made grey",
         "pixels": solve.pixels, "residual": [round(r, 4) for r in solve.residual],
         "level_vs_net": round(level / net_level, 4) if net_level > 0 else None,
         "seconds": round(time.perf_counter() - start, 4)}
