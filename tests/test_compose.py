@@ -19,6 +19,7 @@ from relightcli.compose import (
     parse_colour,
     paste_back,
     person_crop_box,
+    OUTLINE_NET_SHARE,
     anchor_albedo,
     preview_sheet,
     ratio_albedo,
@@ -255,11 +256,19 @@ def test_anchor_albedo_takes_the_level_from_the_net_and_the_detail_and_colour_fr
     net = np.full(albedo.shape, level, np.float32)  # grey, flat, at the right level
     got = anchor_albedo(ratio, net, mask, ring=0)
     np.testing.assert_allclose(got, albedo, rtol=1e-5)  # the green stays green
-    # The outline ring (1 px) is the net's; the core keeps the ratio's detail
+    # The outline ring (1 px) is the mean of the net's and the nearest pixel's inside it; the
+    # core keeps the ratio's detail
     got = anchor_albedo(ratio, net, mask, ring=1)
-    np.testing.assert_array_equal(got[4, 4:20], net[4, 4:20])
-    np.testing.assert_array_equal(got[19, 4:20], net[19, 4:20])
+    share = OUTLINE_NET_SHARE
+    np.testing.assert_allclose(got[4, 5:19], share * net[4, 5:19] + (1 - share) * albedo[5, 5:19], rtol=1e-5)
+    np.testing.assert_allclose(got[19, 5:19], share * net[19, 5:19] + (1 - share) * albedo[18, 5:19], rtol=1e-5)
+    np.testing.assert_allclose(got[4, 4], share * net[4, 4] + (1 - share) * albedo[5, 5], rtol=1e-5)
     np.testing.assert_allclose(got[5:19, 5:19], albedo[5:19, 5:19], rtol=1e-5)
+    # A person no wider than the ring: all outline, the net's there
+    thin = np.zeros((24, 24), np.float32)
+    thin[4:20, 10:12] = 1.0
+    got = anchor_albedo(ratio, net, thin, ring=1)
+    np.testing.assert_allclose(got[4:20, 10:12], net[4:20, 10:12])
 
 
 def test_anchor_albedo_stays_physical_and_finite_on_extreme_inputs():
