@@ -167,7 +167,8 @@ RATIO_RING = 1
 # relit / albedo dB (`relight eval DATA --use-gt-mask`), the net's alone -> the nearest pixel's
 # alone -> the mean (0.5): 20 at 512 18.009 / 17.264 -> 18.091 / 17.236 -> 18.092 / 17.314;
 # 120 at 256 in training poses 17.111 / 17.759 -> 17.295 / 17.820 -> 17.253 / 17.878; 150 at
-# 256 17.973 / 18.335 -> 18.110 / 18.343 -> 18.113 / 18.449
+# 256 17.973 / 18.335 -> 18.110 / 18.343 -> 18.113 / 18.449. The level then matched inside the
+# ring instead of over the whole person: 18.144 / 17.354, 18.132 / 18.507, 17.260 / 17.934
 OUTLINE_NET_SHARE = 0.5
 
 
@@ -177,9 +178,9 @@ def anchor_albedo(ratio: np.ndarray, net_albedo: np.ndarray, mask: np.ndarray,
     that the mean over the person and the channels equals the net albedo's (the lighting's
     estimated intensity is less sure than the net's albedo level; its colour is not: the net's
     albedo greys strongly coloured clothes, where the photo over the light keeps their colour),
-    clipped to [0, 1]. On the outline ring, where the photo mixes in the background, the mean
-    of the net's albedo and the nearest pixel's inside the ring (OUTLINE_NET_SHARE).
-    (H, W, 3) float32 linear, mask (H, W).
+    clipped to [0, 1] (the means taken inside the outline ring). On the outline ring, where the
+    photo mixes in the background, the mean of the net's albedo and the nearest pixel's inside
+    the ring (OUTLINE_NET_SHARE). (H, W, 3) float32 linear, mask (H, W).
 
     Measured against a gain per channel (`relight eval DATA [--use-gt-mask]`, relit / albedo
     dB): 150 validation scenes at 256 (`python -m export.factory.eval_scenes data/factory256p
@@ -190,11 +191,13 @@ def anchor_albedo(ratio: np.ndarray, net_albedo: np.ndarray, mask: np.ndarray,
     inside = mask > 0.5
     if not inside.any():
         return np.asarray(ratio, np.float32)
-    have, want = float(ratio[inside].mean()), float(net_albedo[inside].mean())
+    core = cv2.erode(inside.astype(np.uint8), np.ones((2 * ring + 1,) * 2, np.uint8), borderValue=0) > 0
+    # The level is matched inside the outline ring, where the photo is the person's alone
+    level = core if core.any() else inside
+    have, want = float(ratio[level].mean()), float(net_albedo[level].mean())
     gain = want / have if have > 1e-6 else 1.0
     out = np.clip(ratio * np.float32(gain), 0.0, 1.0)
     if ring > 0:
-        core = cv2.erode(inside.astype(np.uint8), np.ones((2 * ring + 1,) * 2, np.uint8), borderValue=0) > 0
         outline = inside & ~core
         nearest = fill_uncovered(out, core, outline) if core.any() else net_albedo
         out[outline] = (OUTLINE_NET_SHARE * net_albedo[outline]

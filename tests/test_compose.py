@@ -257,8 +257,9 @@ def test_anchor_albedo_takes_the_level_from_the_net_and_the_detail_and_colour_fr
     got = anchor_albedo(ratio, net, mask, ring=0)
     np.testing.assert_allclose(got, albedo, rtol=1e-5)  # the green stays green
     # The outline ring (1 px) is the mean of the net's and the nearest pixel's inside it; the
-    # core keeps the ratio's detail
+    # core keeps the ratio's detail, at the net's level inside the ring
     got = anchor_albedo(ratio, net, mask, ring=1)
+    albedo = albedo * (level / albedo[5:19, 5:19].mean())
     share = OUTLINE_NET_SHARE
     np.testing.assert_allclose(got[4, 5:19], share * net[4, 5:19] + (1 - share) * albedo[5, 5:19], rtol=1e-5)
     np.testing.assert_allclose(got[19, 5:19], share * net[19, 5:19] + (1 - share) * albedo[18, 5:19], rtol=1e-5)
