@@ -602,11 +602,11 @@ def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
     silhouette (R, R) person probability or None (sets R; the mask is where it exceeds
     config.silhouette_threshold; non-finite or nearly empty maps are not used, see
     BodyFit.silhouette_used); resolution R when there is no silhouette. Never raises on
-    missing, NaN or collapsed landmarks: those, a person too little seen or sitting, and 2D
-    keypoints and world landmarks with left and right on opposite sides give a rest-pose body
-    with converged False and the reason; a fit whose keypoint residual stays above
+    missing, NaN or collapsed landmarks: those, a person too little seen, and 2D keypoints
+    and world landmarks with left and right on opposite sides give a rest-pose body with
+    converged False and the reason; a fit whose keypoint residual stays above
     config.max_residual_px (at 512 px) comes back with converged False too. A person seen
-    from behind is fitted like any other (BodyFit.faces_camera False).
+    from behind or sitting is fitted like any other (BodyFit.faces_camera False from behind).
     """
     resolution = _resolution(silhouette, resolution)
     keypoints, weight = _seen_keypoints(keypoints_2d, visibility, resolution, config)
@@ -683,11 +683,6 @@ def _input_problem(keypoints, weight, world, config: FitConfig) -> str | None:
         return "world landmarks collapsed (hips or torso shorter than 2 cm / 10 cm)"
     if _sides_disagree(keypoints, weight, points):
         return "the 2D keypoints and the world landmarks put left and right on opposite sides"
-    frame = _torso_frame(points)
-    thighs = [points[_L[k]] - points[_L[h]] for h, k in (("left_hip", "left_knee"),
-                                                         ("right_hip", "right_knee"))]
-    if all(-(t @ frame[:, 1]) < 0.5 * np.linalg.norm(t) for t in thighs):
-        return "sitting (both thighs more than 60 degrees from the torso's axis)"
     return None
 
 
