@@ -157,3 +157,14 @@ def smooth_depth(depth, mask, sigma: float) -> np.ndarray:
                              sigma, borderType=cv2.BORDER_CONSTANT)
     # Every mask pixel weighs itself: its weight is at least the kernel's centre value
     return np.where(inside > 0, total / np.maximum(weight, 1e-12), depth).astype(np.float32)
+
+
+def smooth_normals(normals, mask, sigma: float) -> np.ndarray:
+    """Unit normals (H, W, 3) smoothed inside the person: each component by smooth_depth's
+    normalised Gaussian (sigma in pixels), then scaled back to length 1; non-finite normals
+    count as zero vectors, and outside the mask the input is kept. Returns float32."""
+    normals = np.nan_to_num(np.asarray(normals, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    smoothed = np.stack([smooth_depth(normals[..., c], mask, sigma) for c in range(3)], axis=-1)
+    length = np.linalg.norm(smoothed, axis=-1, keepdims=True)
+    smoothed = smoothed / np.where(length > 0, length, 1.0)
+    return np.where(np.asarray(mask)[..., None] > 0.5, smoothed, normals).astype(np.float32)

@@ -10,7 +10,13 @@ import trimesh
 
 from relightcli.errors import InputError
 from relightcli.geometry.mesh import reconstruct_mesh
-from relightcli.geometry.smoothing import cotangent_weights, smooth_depth, smooth_mesh, smooth_vertices
+from relightcli.geometry.smoothing import (
+    cotangent_weights,
+    smooth_depth,
+    smooth_mesh,
+    smooth_normals,
+    smooth_vertices,
+)
 
 
 def _jittered_grid(n=12, jitter=0.25, seed=0):
@@ -168,3 +174,41 @@ def test_smooth_depth_is_finite_on_tiny_masks(case):
     assert np.all(np.isfinite(out))
     if case == "one_pixel":
         assert out[5, 7] == pytest.approx(depth[5, 7], rel=1e-5)
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_smooth_normals_keeps_a_constant_field_and_the_background():
+    mask = np.zeros((48, 48), np.float32)
+    mask[8:40, 12:30] = 1.0
+    normals = np.where(mask[..., None] > 0, _unit(np.array([0.3, -0.2, 0.9])), 0.0).astype(np.float32)
+    out = smooth_normals(normals, mask, sigma=4.0)
+    np.testing.assert_allclose(out[mask > 0], normals[mask > 0], atol=1e-6)
+    np.testing.assert_array_equal(out[mask == 0], normals[mask == 0])
+
+
+def test_smooth_normals_brings_noisy_normals_closer_and_keeps_them_unit():
+    rng = np.random.default_rng(1)
+    rows, cols = np.mgrid[0:96, 0:96].astype(np.float32)
+    truth = _unit(np.stack([(cols - 48) / 96, (48 - rows) / 96, np.ones_like(cols)], axis=-1))
+    noisy = _unit(truth + rng.normal(0, 0.2, truth.shape)).astype(np.float32)
+    mask = np.ones((96, 96), np.float32)
+    out = smooth_normals(noisy, mask, sigma=2.0)
+
+    def angle(a):
+        return np.degrees(np.arccos(np.clip((a * truth).sum(-1), -1, 1)))[10:86, 10:86].mean()
+
+    assert angle(out) < 0.4 * angle(noisy)
+    np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, atol=1e-5)
+
+
+def test_smooth_normals_is_finite_with_nan_normals_and_an_empty_mask():
+    normals = np.random.default_rng(2).normal(size=(24, 24, 3)).astype(np.float32)
+    normals[5:9, 5:9] = np.nan
+    mask = np.zeros((24, 24), np.float32)
+    mask[2:20, 2:20] = 1.0
+    assert np.isfinite(smooth_normals(normals, mask, sigma=3.0)[mask > 0]).all()
+    empty = smooth_normals(np.nan_to_num(normals), np.zeros((24, 24), np.float32), sigma=3.0)
+    np.testing.assert_array_equal(empty, np.nan_to_num(normals))
