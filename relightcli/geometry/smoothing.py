@@ -143,28 +143,41 @@ def smooth_depth(depth, mask, sigma: float) -> np.ndarray:
     blurred depth x mask over the blurred mask), so the background never leaks in. sigma in
     pixels (0 returns a copy). Returns (H, W) float32; outside the mask the input is kept.
     """
-    import cv2
-
     depth = np.asarray(depth, dtype=np.float32)
-    inside = (np.asarray(mask) > 0.5).astype(np.float32)
+    inside = np.asarray(mask) > 0.5
     if sigma <= 0 or not inside.any():
         return depth.copy()
-    if not np.all(np.isfinite(depth[inside > 0])):
+    if not np.all(np.isfinite(depth[inside])):
         raise InputError("depth map has NaN or Inf inside the mask")
-    size = 2 * int(np.ceil(3.0 * sigma)) + 1
-    weight = cv2.GaussianBlur(inside, (size, size), sigma, borderType=cv2.BORDER_CONSTANT)
-    total = cv2.GaussianBlur(np.where(inside > 0, depth, 0.0).astype(np.float32), (size, size),
-                             sigma, borderType=cv2.BORDER_CONSTANT)
-    # Every mask pixel weighs itself: its weight is at least the kernel's centre value
-    return np.where(inside > 0, total / np.maximum(weight, 1e-12), depth).astype(np.float32)
+    return _blur_inside(depth, inside, sigma)
 
 
 def smooth_normals(normals, mask, sigma: float) -> np.ndarray:
-    """Unit normals (H, W, 3) smoothed inside the person: each component by smooth_depth's
-    normalised Gaussian (sigma in pixels), then scaled back to length 1; non-finite normals
-    count as zero vectors, and outside the mask the input is kept. Returns float32."""
+    """Unit normals (H, W, 3) smoothed inside the person by smooth_depth's normalised Gaussian
+    (sigma in pixels), then scaled back to length 1; non-finite normals count as zero vectors,
+    and outside the mask the input is kept. Returns float32."""
     normals = np.nan_to_num(np.asarray(normals, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    smoothed = np.stack([smooth_depth(normals[..., c], mask, sigma) for c in range(3)], axis=-1)
+    inside = np.asarray(mask) > 0.5
+    if sigma <= 0 or not inside.any():
+        return normals
+    smoothed = _blur_inside(normals, inside, sigma)
     length = np.linalg.norm(smoothed, axis=-1, keepdims=True)
-    smoothed = smoothed / np.where(length > 0, length, 1.0)
-    return np.where(np.asarray(mask)[..., None] > 0.5, smoothed, normals).astype(np.float32)
+    return np.where(inside[..., None], smoothed / np.where(length > 0, length, 1.0),
+                    normals).astype(np.float32)
+
+
+def _blur_inside(values: np.ndarray, inside: np.ndarray, sigma: float) -> np.ndarray:
+    """(H, W[, C]) float32 values blurred inside the boolean mask: the blurred values x mask
+    over the blurred mask, so nothing outside leaks in; outside, the values are kept."""
+    import cv2
+
+    size = 2 * int(np.ceil(3.0 * sigma)) + 1
+    weight = cv2.GaussianBlur(inside.astype(np.float32), (size, size), sigma,
+                              borderType=cv2.BORDER_CONSTANT)
+    keep = inside if values.ndim == 2 else inside[..., None]
+    total = cv2.GaussianBlur(np.where(keep, values, 0.0).astype(np.float32), (size, size), sigma,
+                             borderType=cv2.BORDER_CONSTANT)
+    if values.ndim == 3:
+        weight = weight[..., None]
+    # Every mask pixel weighs itself: its weight is at least the kernel's centre value
+    return np.where(keep, total / np.maximum(weight, 1e-12), values).astype(np.float32)
