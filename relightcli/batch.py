@@ -19,7 +19,7 @@ import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -39,10 +39,11 @@ from relightcli.layers import IMAGE_EXTENSIONS, LAYERS, OUTPUT_EXTENSIONS
 
 @dataclass
 class Item:
-    """One input image and the files it will produce."""
+    """One input image, the files it will produce and its own mask file (`pair_masks`)."""
 
     input: Path
     outputs: dict[str, Path]  # layer name -> output path
+    mask: Path | None = None
 
 
 @dataclass
@@ -109,6 +110,23 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
     return found
 
 
+def pair_masks(found: list[tuple[Path, Path]]) -> tuple[list[tuple[Path, Path]], dict[Path, Path]]:
+    """Split `collect_inputs`'s list into photos and their masks: an input NAME_mask.EXT in
+    the same folder as an input NAME.EXT2 (any image extensions; the name the mask layer is
+    written under) is that photo's mask, not a photo. Returns (the photos, {photo: mask});
+    a NAME_mask image without its photo stays a photo."""
+    suffix = LAYERS["mask"].suffix
+    by_name = {(file.parent.resolve(), file.stem): file for file, _ in found}
+    masks = {}
+    for file, _ in found:
+        if file.stem.endswith(suffix):
+            photo = by_name.get((file.parent.resolve(), file.stem[:-len(suffix)]))
+            if photo is not None:
+                masks[photo] = file
+    mask_files = set(masks.values())
+    return [(file, stem) for file, stem in found if file not in mask_files], masks
+
+
 def _refuse_folder_in_output(folder: Path, exclude: set[Path]) -> None:
     """An input folder that is (or lies inside) an excluded folder, the output, would be
     scanned empty: say so instead of "no input images found"."""
@@ -126,13 +144,15 @@ TURNTABLE_LAYERS = ("relit", "shading")  # the layers that change with the light
 
 
 def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0,
-               read_only: Iterable[str | Path] = ()) -> list[Item]:
+               read_only: Iterable[str | Path] = (), masks: dict[Path, Path] | None = None) -> list[Item]:
     """Decide every output path. `out` is a file when there is exactly one input and it has an
     extension (one of OUTPUT_EXTENSIONS, else a UsageError); it is a directory when there are
     several inputs, when it has no extension, ends with '/' or is an existing folder. With a
     turntable of N frames the lit layers become N numbered files ('relit#000' ->
-    photo_turn000.png). Refuses collisions and outputs that are inputs: the photos and the
-    `read_only` files (the environment map, the mask)."""
+    photo_turn000.png). `masks`: each photo's own mask (`pair_masks`). Refuses collisions and
+    outputs that are inputs: the photos, their masks and the `read_only` files (the
+    environment map, --mask)."""
+    masks = masks or {}
     as_folder = str(out).endswith(("/", os.sep)) or Path(out).is_dir() or not Path(out).suffix
     out = Path(out)
     layers = list(layers)
@@ -156,8 +176,8 @@ def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0
                 outputs[name] = out / stem.parent / f"{stem.name}{layer.suffix}{layer.extension}"
         if turntable:
             outputs = _numbered_frames(outputs, turntable)
-        items.append(Item(path, outputs))
-    _refuse_collisions(items, read_only)
+        items.append(Item(path, outputs, masks.get(path)))
+    _refuse_collisions(items, [*read_only, *masks.values()])
     return items
 
 
@@ -474,7 +494,7 @@ def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool,
                 raise OutputError(
                     "output exists", path=existing[0], fix="pass --overwrite or --skip-existing"
                 )
-            report = _relight_staged(Item(item.input, todo), worker,
+            report = _relight_staged(replace(item, outputs=todo), worker,
                                      commit_guard or contextlib.nullcontext())
         except RelightError as exc:
             report = ItemReport(str(item.input), error=str(exc), exit_code=exc.exit_code)
@@ -501,7 +521,7 @@ def _relight_staged(item: Item, worker, commit_guard) -> ItemReport:
     staged = {key: _staging_path(path) for key, path in item.outputs.items()}
     committed = False
     try:
-        report = worker(Item(item.input, staged))
+        report = worker(replace(item, outputs=staged))
         if report.error is None:
             with commit_guard:
                 for key, path in item.outputs.items():
@@ -641,7 +661,8 @@ def run_items_ray(
     try:
         rows = [
             {"index": index, "input": str(item.input),
-             "outputs": json.dumps({k: str(v) for k, v in item.outputs.items()})}
+             "outputs": json.dumps({k: str(v) for k, v in item.outputs.items()}),
+             "mask": "" if item.mask is None else str(item.mask)}
             for index, item in enumerate(items)
         ]
         dataset = ray.data.from_items(rows).map_batches(
@@ -676,8 +697,9 @@ class _RayItemActor:
         import numpy as np
 
         reports = []
-        for path, outputs in zip(batch["input"], batch["outputs"]):
-            item = Item(Path(str(path)), {k: Path(v) for k, v in json.loads(str(outputs)).items()})
+        for path, outputs, mask in zip(batch["input"], batch["outputs"], batch["mask"]):
+            item = Item(Path(str(path)), {k: Path(v) for k, v in json.loads(str(outputs)).items()},
+                        Path(str(mask)) if str(mask) else None)
             report = _run_one(item, self.worker, self.skip_existing, self.overwrite)
             reports.append(json.dumps(asdict(report)))
         return {"index": batch["index"], "report": np.array(reports, dtype=object)}

@@ -106,7 +106,8 @@ def stage_needs(stage: str, options: RelightOptions) -> tuple[str, ...]:
 
 
 def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
-    """Decide which stages run. `has_alpha`: the input brings an alpha channel or --mask."""
+    """Decide which stages run. `has_alpha`: the input brings an alpha channel or a mask file
+    (--mask, or the photo's own NAME_mask file)."""
     needed: set[str] = set()
     pending = [stage for output in options.outputs for stage in output_needs(output, options.method)]
     while pending:
@@ -127,8 +128,8 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
                               "refinement's shading is used over the face too")
     if "people" in run and has_alpha and "face" not in run and "body" not in run:
         run.remove("people")
-        skipped["people"] = ("the input brings an alpha channel or --mask (only the face and body "
-                             "stages need the people)")
+        skipped["people"] = ("the input brings an alpha channel or a mask file (only the face and "
+                             "body stages need the people)")
     return Plan(run, skipped)
 
 
@@ -181,7 +182,8 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
     with _timed(report, "load"):
         image = read_image(item.input, max_pixels=options.max_pixels)
         _check_usable_size(image, item.input)
-        mask = _input_mask(image, options, item.input)
+        mask_path = options.mask_path or item.mask
+        mask = _input_mask(image, mask_path, options.max_pixels, item.input)
     frames = options.turntable or 1
     lightings = [env] if frames == 1 else [rotate_envmap(env, 360.0 * k / frames) for k in range(frames)]
 
@@ -194,7 +196,8 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
                     report.outputs[key] = str(path)
 
     frame, plan = run_stages(image.rgb, mask, env, options, report, models, lightings=lightings,
-                             on_lighting=write_lit_layers)
+                             on_lighting=write_lit_layers,
+                             mask_source=_mask_source(options.mask_path, item.mask))
     report.details["plan"] = plan.as_dict()
     with _timed(report, "write"):
         for key, path in item.outputs.items():
@@ -206,9 +209,11 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
 
 
 def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: ItemReport, models=None,
-               *, lightings=None, on_lighting=None):
+               *, lightings=None, on_lighting=None, mask_source=None):
     """Plan and run the stages on arrays. Returns (frame, plan).
 
+    mask: the input's (H, W) person mask or None; mask_source says where it came from (the
+    report's "mask" note; default "alpha channel").
     lightings: environments to relight under in turn (default [env]); the stages that do not
     depend on the lighting run once, the others once per environment, each followed by
     on_lighting(index, frame). Stage times add up over the lightings."""
@@ -218,7 +223,7 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     plan = plan_stages(options, has_alpha=mask is not None)
     frame = Frame(image=image, mask=mask, env=env)
     if mask is not None:
-        frame.notes["mask"] = {"source": "--mask" if options.mask_path else "alpha channel"}
+        frame.notes["mask"] = {"source": mask_source or "alpha channel"}
     try:
         for stage in (s for s in plan.run if s not in LIGHTING_STAGES):
             with _timed(report, stage):
@@ -271,17 +276,25 @@ def _check_usable_size(image, path) -> None:
         )
 
 
-def _input_mask(image, options: RelightOptions, input_path):
-    """The person mask from --mask or the input's alpha, (H, W) float32 in [0, 1], or None."""
+def _mask_source(option_path, own_path) -> str | None:
+    """The report's word for where a mask file came from, None for none."""
+    if option_path is not None:
+        return f"--mask {option_path}"
+    return None if own_path is None else f"{own_path} (the photo's own mask)"
+
+
+def _input_mask(image, mask_path, max_pixels, input_path):
+    """The person mask from the file `mask_path` (--mask or the photo's own NAME_mask file)
+    or else the input's alpha, (H, W) float32 in [0, 1], or None."""
     from relightcli.io.images import read_image
 
-    if options.mask_path is not None:
-        mask_image = read_image(options.mask_path, max_pixels=options.max_pixels, srgb=False)
+    if mask_path is not None:
+        mask_image = read_image(mask_path, max_pixels=max_pixels, srgb=False)
         if mask_image.rgb.shape[:2] != image.rgb.shape[:2]:
             raise InputError(
                 f"mask is {mask_image.rgb.shape[1]}x{mask_image.rgb.shape[0]} but the photo "
                 f"{input_path} is {image.rgb.shape[1]}x{image.rgb.shape[0]}",
-                path=options.mask_path,
+                path=mask_path,
                 fix="pass a mask of the same size as the photo",
             )
         # A grey mask image is data; a mask given as an alpha channel wins when it has one.

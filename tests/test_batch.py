@@ -84,11 +84,15 @@ def test_address_without_ray_engine_is_usage_error(tmp_path):
 def test_ray_engine_matches_local(tmp_path, capsys):
     pytest.importorskip("ray.data")
     folder = make_folder(tmp_path, 4)
+    own_mask = np.zeros((40, 36), np.float32)
+    own_mask[5:30, 8:20] = 1.0
+    write_image(folder / "p01_mask.png", own_mask, bits=8, srgb=False)  # p01's own mask
     code_local, report_local = run(capsys, folder, tmp_path / "local", "--workers", "1")
     code_ray, report_ray = run(capsys, folder, tmp_path / "ray", "--engine", "ray", "--workers", "2", "--threads", "2")
     assert code_local == code_ray == 1
     assert output_bytes(tmp_path / "local") == output_bytes(tmp_path / "ray")
     assert [i["input"] for i in report_ray["items"]] == [i["input"] for i in report_local["items"]]
+    assert "p01_mask.png" in report_ray["items"][1]["stages"]["mask"]["source"]
     bad = [i for i in report_ray["items"] if i["error"]]
     assert len(bad) == 1 and "z_bad0.png" in bad[0]["error"]
 

@@ -283,6 +283,59 @@ def test_mask_file_of_wrong_size_exits_4(tmp_path, env_path, capsys):
     assert code == 4 and "m.png" in report["items"][0]["error"]
 
 
+def grey_mask(path: Path, shape=(48, 40)) -> tuple[Path, np.ndarray]:
+    mask = np.zeros(shape, np.float32)
+    mask[10:44, 6:22] = 1.0
+    write_image(path, mask, bits=8, srgb=False)
+    return path, mask
+
+
+def test_a_photos_own_mask_beside_it_is_its_mask_not_a_photo(tmp_path, env_path, capsys):
+    from relightcli.io.images import read_image
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    write_image(folder / "a.png", np.random.default_rng(1).uniform(0.1, 0.9, (48, 40, 3)).astype(np.float32))
+    _, mask = grey_mask(folder / "a_mask.png")
+    rgba_photo(folder / "b.png")
+    rgba_photo(folder / "lone_mask.png")  # no photo "lone": a photo like any other
+    out = tmp_path / "out"
+    code, report = run_json(capsys, [str(folder), "--hdr", str(env_path), "-o", str(out), "--outputs", "mask"])
+    assert code == 0, report
+    assert [Path(i["input"]).name for i in report["items"]] == ["a.png", "b.png", "lone_mask.png"]
+    a = report["items"][0]
+    assert a["stages"]["mask"]["source"] == f"{folder / 'a_mask.png'} (the photo's own mask)"
+    assert a["plan"]["run"] == ["mask"]  # no person detection: the mask is given
+    written = read_image(out / "a_mask.png", srgb=False).rgb[..., 0]
+    assert np.abs(written - mask).max() <= 1 / 255
+    assert report["items"][1]["stages"]["mask"]["source"] == "alpha channel"
+
+
+def test_a_photos_own_mask_in_a_recursive_scan_stays_in_its_folder(tmp_path, env_path, capsys):
+    for sub in ("x", "y"):
+        (tmp_path / "in" / sub).mkdir(parents=True)
+        write_image(tmp_path / "in" / sub / "p.png", np.full((48, 40, 3), 0.5, np.float32))
+    grey_mask(tmp_path / "in" / "x" / "p_mask.png")
+    code, report = run_json(capsys, [str(tmp_path / "in"), "--recursive", "--hdr", str(env_path), "-o",
+                                     str(tmp_path / "out"), "--outputs", "mask", "--method", "sh9"])
+    items = {str(Path(i["input"]).relative_to(tmp_path / "in")): i for i in report["items"]}
+    assert sorted(items) == ["x/p.png", "y/p.png"]
+    assert "p_mask.png" in items["x/p.png"]["stages"]["mask"]["source"]
+    assert "p_mask.png" not in json.dumps(items["y/p.png"].get("stages", {}))
+
+
+def test_mask_option_and_a_photos_own_mask_file_are_refused_together(tmp_path, env_path, capsys):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    rgba_photo(folder / "a.png")
+    grey_mask(folder / "a_mask.png")
+    other, _ = grey_mask(tmp_path / "m.png")
+    code = main([str(folder), "--mask", str(other), "--hdr", str(env_path), "-o", str(tmp_path / "out"), "--outputs", "mask"])
+    assert code == 2
+    assert "a_mask.png" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_info_json(capsys):
     code, report = run_json(capsys, ["info"])
     assert code == 0

@@ -155,7 +155,8 @@ def relight_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"relight {__version__}")
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
-                        help="photos (JPEG, PNG, TIFF, WebP, EXR, HDR) and/or folders of them")
+                        help="photos (JPEG, PNG, TIFF, WebP, EXR, HDR) and/or folders of them; an input "
+                             "NAME_mask.png beside NAME.jpg is that photo's person mask, not a photo")
     parser.add_argument("--hdr", required=True, metavar="ENV",
                         help="target environment map, equirectangular .hdr/.exr (width = 2 x height)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT",
@@ -170,7 +171,8 @@ def relight_parser() -> argparse.ArgumentParser:
                         default="raytrace",
                         help="shading: ray tracing + learned refinement (paper, default), ray tracing only, "
                              "or SH-9 / SH-25 irradiance from predicted normals (baselines)")
-    parser.add_argument("--mask", metavar="FILE", help="person mask (grey or alpha image); skips the mask net")
+    parser.add_argument("--mask", metavar="FILE",
+                        help="person mask (grey or alpha image) for every input; skips the mask net")
     parser.add_argument("--rotate", type=float, default=0.0, metavar="DEG",
                         help="rotate the environment about +Y, counter-clockwise seen from above")
     parser.add_argument("--exposure", type=float, default=0.0, metavar="EV",
@@ -294,9 +296,13 @@ def run_relight(args) -> int:
         raise UsageError("--skip-existing and --overwrite contradict each other", fix="pass one of them")
     threads = args.threads or default_threads()
     exclude = [Path(args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
-    found = batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude)
+    found, masks = batch.pair_masks(batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude))
+    if masks and args.mask:
+        photo, mask = next(iter(masks.items()))
+        raise UsageError(f"--mask and a photo's own mask file ({mask} for {photo}) both give masks",
+                         fix="drop --mask, or move the NAME_mask files away")
     items = batch.plan_items(found, args.output, args.outputs, turntable=args.turntable,
-                             read_only=[args.hdr] + ([args.mask] if args.mask else []))
+                             read_only=[args.hdr] + ([args.mask] if args.mask else []), masks=masks)
     _refuse_alpha_loss(items, args.background)
     batch.prepare_output_dirs(items)
     env, env_warnings = _load_environment(args)
