@@ -140,18 +140,20 @@ def _refuse_folder_in_output(folder: Path, exclude: set[Path]) -> None:
                          fix="choose an -o outside the input folder")
 
 
-TURNTABLE_LAYERS = ("relit", "shading")  # the layers that change with the lighting
+LIT_LAYERS = ("relit", "shading", "preview")  # the layers that change with the lighting
 
 
-def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0,
+def plan_items(found, out: str | Path, layers: Iterable[str], lightings: Iterable[str] = (),
                read_only: Iterable[str | Path] = (), masks: dict[Path, Path] | None = None) -> list[Item]:
     """Decide every output path. `out` is a file when there is exactly one input and it has an
     extension (one of OUTPUT_EXTENSIONS, else a UsageError); it is a directory when there are
-    several inputs, when it has no extension, ends with '/' or is an existing folder. With a
-    turntable of N frames the lit layers become N numbered files ('relit#000' ->
-    photo_turn000.png). `masks`: each photo's own mask (`pair_masks`). Refuses collisions and
-    outputs that are inputs: the photos, their masks and the `read_only` files (the
-    environment map, --mask)."""
+    several inputs, when it has no extension, ends with '/' or is an existing folder.
+    `lightings`: the names of several lightings (a turntable's frames 'turn000', ..., or the
+    maps' names): each lit layer becomes one file per lighting, keyed 'relit#000', ... and
+    named after it (photo_turn000.png, photo_shading_sunset.exr). `masks`: each photo's own
+    mask (`pair_masks`). Refuses collisions and outputs that are inputs: the photos, their
+    masks and the `read_only` files (the environment maps, --mask)."""
+    lightings = list(lightings)
     masks = masks or {}
     as_folder = str(out).endswith(("/", os.sep)) or Path(out).is_dir() or not Path(out).suffix
     out = Path(out)
@@ -174,21 +176,21 @@ def plan_items(found, out: str | Path, layers: Iterable[str], turntable: int = 0
                 outputs[name] = base.parent / f"{base.name}{layer.suffix}{ext}"
             else:
                 outputs[name] = out / stem.parent / f"{stem.name}{layer.suffix}{layer.extension}"
-        if turntable:
-            outputs = _numbered_frames(outputs, turntable)
+        if lightings:
+            outputs = _one_per_lighting(outputs, lightings)
         items.append(Item(path, outputs, masks.get(path)))
     _refuse_collisions(items, [*read_only, *masks.values()])
     return items
 
 
-def _numbered_frames(outputs: dict[str, Path], frames: int) -> dict[str, Path]:
+def _one_per_lighting(outputs: dict[str, Path], lightings: list[str]) -> dict[str, Path]:
     numbered = {}
     for name, path in outputs.items():
-        if name not in TURNTABLE_LAYERS:
+        if name not in LIT_LAYERS:
             numbered[name] = path
             continue
-        for k in range(frames):
-            numbered[f"{name}#{k:03d}"] = path.with_name(f"{path.stem}_turn{k:03d}{path.suffix}")
+        for k, lighting in enumerate(lightings):
+            numbered[f"{name}#{k:03d}"] = path.with_name(f"{path.stem}_{lighting}{path.suffix}")
     return numbered
 
 

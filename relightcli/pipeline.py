@@ -173,8 +173,9 @@ class RelightWorker:
 def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemReport:
     """Run the planned stages on one input and write its outputs. Raises project errors.
 
-    With options.turntable = N, the lighting stages run N times under the environment turned
-    360/N degrees apart; outputs named 'relit#003' / 'shading#003' receive frame 3."""
+    env: one environment map, or a list of them: the lighting stages run once per map. With
+    options.turntable = N, they run N times under the (one) map turned 360/N degrees apart.
+    Outputs keyed 'relit#003' / 'shading#003' / 'preview#003' receive lighting 3."""
     from relightcli.io.envmap import rotate_envmap
     from relightcli.io.images import read_image
 
@@ -184,8 +185,9 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
         _check_usable_size(image, item.input)
         mask_path = options.mask_path or item.mask
         mask = _input_mask(image, mask_path, options.max_pixels, item.input)
-    frames = options.turntable or 1
-    lightings = [env] if frames == 1 else [rotate_envmap(env, 360.0 * k / frames) for k in range(frames)]
+    lightings = list(env) if isinstance(env, (list, tuple)) else [env]
+    if options.turntable:
+        lightings = [rotate_envmap(lightings[0], 360.0 * k / options.turntable) for k in range(options.turntable)]
 
     def write_lit_layers(k, frame):
         with _timed(report, "write"):
@@ -195,7 +197,7 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
                     write_layer(name, path, frame, options)
                     report.outputs[key] = str(path)
 
-    frame, plan = run_stages(image.rgb, mask, env, options, report, models, lightings=lightings,
+    frame, plan = run_stages(image.rgb, mask, lightings[0], options, report, models, lightings=lightings,
                              on_lighting=write_lit_layers,
                              mask_source=_mask_source(options.mask_path, item.mask))
     report.details["plan"] = plan.as_dict()

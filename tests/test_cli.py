@@ -336,6 +336,20 @@ def test_mask_option_and_a_photos_own_mask_file_are_refused_together(tmp_path, e
     assert not (tmp_path / "out").exists()
 
 
+def test_several_maps_with_a_turntable_or_one_name_are_refused(tmp_path, env_path, capsys):
+    photo = rgba_photo(tmp_path / "a.png")
+    other = tmp_path / "other"
+    other.mkdir()
+    same_name = other / env_path.name
+    same_name.write_bytes(env_path.read_bytes())
+    base = [str(photo), "--hdr", str(env_path), "-o", str(tmp_path / "out"), "--outputs", "relit"]
+    assert main(base + ["--hdr", str(same_name)]) == 2
+    assert "named 'env'" in capsys.readouterr().err
+    assert main(base + ["--hdr", str(tmp_path / "a.png"), "--turntable", "3"]) == 2
+    assert "--turntable" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_info_json(capsys):
     code, report = run_json(capsys, ["info"])
     assert code == 0

@@ -88,6 +88,33 @@ def test_methods_skip_what_they_do_not_need(random_models, tmp_path, capsys, mon
     assert np.isfinite(relit).all() and relit.max() > 0
 
 
+def test_several_maps_write_the_lit_layers_once_per_map_as_single_runs_do(random_models, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("RELIGHT_MODELS_DIR", str(random_models))
+    from relightcli.io.images import write_image
+
+    overcast = tmp_path / "grey sky.hdr"  # a name with a space: used as it is
+    write_image(overcast, np.full((16, 32, 3), 0.7, np.float32))
+    common = [str(EXAMPLES / "skier.jpg"), "--mask", str(EXAMPLES / "skier_mask.png"), "--outputs",
+              "relit,albedo,shading,preview", "--method", "raytrace-norefine", "--resolution", "48",
+              "--spp", "4", "--threads", "1", "--json"]
+    code = main(common + ["--hdr", str(EXAMPLES / "noon_grass.hdr"), "--hdr", str(overcast),
+                          "-o", str(tmp_path / "both" / "s.png")])
+    item = json.loads(capsys.readouterr().out)["items"][0]
+    assert code == 0, item
+    assert item["stages"]["scene_builds"] == 1
+    assert sorted(p.name for p in (tmp_path / "both").iterdir()) == [
+        "s_albedo.png", "s_grey sky.png", "s_noon_grass.png", "s_preview_grey sky.png",
+        "s_preview_noon_grass.png", "s_shading_grey sky.exr", "s_shading_noon_grass.exr"]
+    for env, name in ((EXAMPLES / "noon_grass.hdr", "noon_grass"), (overcast, "grey sky")):
+        alone = tmp_path / name / "s.png"
+        assert main(common + ["--hdr", str(env), "-o", str(alone)]) == 0
+        capsys.readouterr()
+        for layer in ("", "_shading", "_preview"):
+            ext = ".exr" if layer == "_shading" else ".png"
+            assert (tmp_path / "both" / f"s{layer}_{name}{ext}").read_bytes() == (alone.parent / f"s{layer}{ext}").read_bytes()
+        assert (tmp_path / "both" / "s_albedo.png").read_bytes() == (alone.parent / "s_albedo.png").read_bytes()
+
+
 def test_turntable_writes_numbered_frames_and_builds_the_scene_once(random_models, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("RELIGHT_MODELS_DIR", str(random_models))
     code = main([str(EXAMPLES / "skier.jpg"), "--mask", str(EXAMPLES / "skier_mask.png"),

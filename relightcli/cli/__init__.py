@@ -157,8 +157,11 @@ def relight_parser() -> argparse.ArgumentParser:
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
                         help="photos (JPEG, PNG, TIFF, WebP, EXR, HDR) and/or folders of them; an input "
                              "NAME_mask.png beside NAME.jpg is that photo's person mask, not a photo")
-    parser.add_argument("--hdr", required=True, metavar="ENV",
-                        help="target environment map, equirectangular .hdr/.exr (width = 2 x height)")
+    parser.add_argument("--hdr", required=True, metavar="ENV", action="append",
+                        help="target environment map, equirectangular .hdr/.exr (width = 2 x height); "
+                             "repeat it for several maps: the networks and the mesh run once, and the "
+                             "lit layers (relit, shading, preview) are written once per map, named "
+                             "after it (photo_sunset.png, photo_shading_sunset.exr)")
     parser.add_argument("-o", "--output", required=True, metavar="OUT",
                         help="output file (one input; .png, .jpg, .exr or .hdr) or folder (many "
                              "inputs, a name without an extension, or a name ending in '/')")
@@ -295,14 +298,15 @@ def run_relight(args) -> int:
     if args.skip_existing and args.overwrite:
         raise UsageError("--skip-existing and --overwrite contradict each other", fix="pass one of them")
     threads = args.threads or default_threads()
-    exclude = [Path(args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
+    lightings = _lighting_names(args)
+    exclude = [*map(Path, args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
     found, masks = batch.pair_masks(batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude))
     if masks and args.mask:
         photo, mask = next(iter(masks.items()))
         raise UsageError(f"--mask and a photo's own mask file ({mask} for {photo}) both give masks",
                          fix="drop --mask, or move the NAME_mask files away")
-    items = batch.plan_items(found, args.output, args.outputs, turntable=args.turntable,
-                             read_only=[args.hdr] + ([args.mask] if args.mask else []), masks=masks)
+    items = batch.plan_items(found, args.output, args.outputs, lightings=lightings,
+                             read_only=[*args.hdr] + ([args.mask] if args.mask else []), masks=masks)
     _refuse_alpha_loss(items, args.background)
     batch.prepare_output_dirs(items)
     env, env_warnings = _load_environment(args)
@@ -399,8 +403,27 @@ def run_eval(args) -> int:
     return codes.pop() if len(failed) == len(result["per_scene"]) and len(codes) == 1 else 1
 
 
+def _lighting_names(args) -> list[str]:
+    """Names of the lightings that get a file each: the turntable's frames, or the maps'
+    names when there are several maps; none for one map."""
+    if args.turntable:
+        if len(args.hdr) > 1:
+            raise UsageError("--turntable turns one map; several --hdr were given",
+                             fix="pass one --hdr with --turntable, or drop --turntable")
+        return [f"turn{k:03d}" for k in range(args.turntable)]
+    if len(args.hdr) == 1:
+        return []
+    names = [Path(path).stem for path in args.hdr]
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        raise UsageError(f"several --hdr maps are named '{twice[0]}': their outputs would collide",
+                         fix="rename or copy one of the maps")
+    return names
+
+
 def _load_environment(args):
-    """The target environment, loaded once for the whole batch, and its warnings as text."""
+    """The target environments, loaded once for the whole batch (one map, or a list of them
+    when several --hdr were given), and their warnings as text."""
     import warnings
 
     from relightcli.errors import RelightWarning
@@ -408,7 +431,8 @@ def _load_environment(args):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RelightWarning)
-        env = load_envmap(args.hdr, rotate_deg=args.rotate, exposure_ev=args.exposure)
+        envs = [load_envmap(path, rotate_deg=args.rotate, exposure_ev=args.exposure) for path in args.hdr]
+    env = envs[0] if len(envs) == 1 else envs
     return env, [str(w.message) for w in caught if issubclass(w.category, RelightWarning)]
 
 
