@@ -33,6 +33,7 @@ single-image full-body human relighting"), on the CPU.
 
   relight photo.jpg --hdr sky.exr -o out.png        one photo
   relight photos/ --hdr sky.hdr -o out/ --recursive  a folder
+  relight photo.jpg --hdr a.hdr --hdr b.exr -o out/  several maps, the nets run once
   relight shade body.obj --hdr sky.hdr -o shading.exr
                                                      ray-traced shading of any mesh
   relight eval DATASET --method raytrace             the paper's Table 1 on scenes with ground truth
