@@ -183,7 +183,7 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
     with _timed(report, "load"):
         image = read_image(item.input, max_pixels=options.max_pixels)
         _check_usable_size(image, item.input)
-        mask_path = options.mask_path or item.mask
+        mask_path, mask_source = _mask_file(options.mask_path, item.mask)
         mask = _input_mask(image, mask_path, options.max_pixels, item.input)
     lightings = list(env) if isinstance(env, (list, tuple)) else [env]
     if options.turntable:
@@ -199,7 +199,7 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
 
     frame, plan = run_stages(image.rgb, mask, lightings[0], options, report, models, lightings=lightings,
                              on_lighting=write_lit_layers,
-                             mask_source=_mask_source(options.mask_path, item.mask))
+                             mask_source=mask_source)
     report.details["plan"] = plan.as_dict()
     with _timed(report, "write"):
         for key, path in item.outputs.items():
@@ -278,11 +278,12 @@ def _check_usable_size(image, path) -> None:
         )
 
 
-def _mask_source(option_path, own_path) -> str | None:
-    """The report's word for where a mask file came from, None for none."""
+def _mask_file(option_path, own_path):
+    """(the mask file to read, the report's word for where it came from): --mask before the
+    photo's own NAME_mask file; (None, None) for neither."""
     if option_path is not None:
-        return f"--mask {option_path}"
-    return None if own_path is None else f"{own_path} (the photo's own mask)"
+        return option_path, f"--mask {option_path}"
+    return own_path, None if own_path is None else f"{own_path} (the photo's own mask)"
 
 
 def _input_mask(image, mask_path, max_pixels, input_path):
