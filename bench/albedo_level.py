@@ -43,7 +43,7 @@ from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
 from relightcli.render.inverse import unoccluded_transport  # noqa: E402
-from relightcli.stages import Models  # noqa: E402
+from relightcli.stages.frame import Models  # noqa: E402
 
 # Background pixels: this far from the person's mask (px), so the outline's blend is left out
 BACKGROUND_GAP = 7

@@ -1,10 +1,10 @@
 """Ambient occlusion against the factory's truth: the AO net, the fitted bodies' ray-traced AO,
-their mean, and the AO prior net (the AO stage, relightcli.stages.stage_ao).
+their mean, and the AO prior net (the AO stage, relightcli.stages.geometry.stage_ao).
 
     python bench/bench_ao.py data/factory512val --split val [--weights 0,0.5,1] [--prior]
 
 Runs the runtime's stages up to the AO on every sample of the split (its photo, its true mask)
-once per weight of the bodies' AO in the blend (stages.BODY_AO_WEIGHT: 0 is the net alone), and
+once per weight of the bodies' AO in the blend (stages.geometry.BODY_AO_WEIGHT: 0 is the net alone), and
 with --prior once with the AO prior net of the models folder (RELIGHT_MODELS_DIR to try one not
 shipped), and prints the AO MAE over the person (the factory's "ao": the cosine-weighted
 unoccluded fraction on the true mesh, as relightcli.render.integrator.ambient_occlusion), on all
@@ -24,10 +24,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from export.factory import dataset  # noqa: E402
-from relightcli import compose, stages  # noqa: E402
+from relightcli import compose  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import Models  # noqa: E402
+from relightcli.stages import geometry as geometry_stages  # noqa: E402
+from relightcli.stages.frame import Models  # noqa: E402
 
 WHITE = np.ones((8, 16, 3), np.float32)
 
@@ -42,7 +43,7 @@ class BlendOnly(Models):
 def measure(sample: dict, variant, models: Models) -> dict:
     """variant: a weight of the bodies' AO in the blend, or "prior" (the AO prior net)."""
     if variant != "prior":
-        stages.BODY_AO_WEIGHT = variant
+        geometry_stages.BODY_AO_WEIGHT = variant
     report = ItemReport("sample")
     frame, _ = run_stages(sample["input"], sample["mask"], WHITE, RelightOptions(outputs=("ao",), threads=2),
                           report, models)

@@ -4,9 +4,9 @@
     python bench/bench_denoise.py [--res 256] [--spp 8,16,32,64] [--ref-spp 1024] [--maps a.hdr,...]
 
 The integrator bench's body (MakeHuman, subdivided once) at RES x RES, shadow rays lifted as
-the pipeline's (stages.SHADOW_LIFT), under each map: the shading at each sample count, as
+the pipeline's (stages.shading.SHADOW_LIFT), under each map: the shading at each sample count, as
 rendered and with its visibility (traced / unoccluded shading) filtered with the
-integrator's own per-pixel error (render.denoise.filtered_shading, as stages.traced does), against REF_SPP samples on
+integrator's own per-pixel error (render.denoise.filtered_shading, as stages.shading.traced does), against REF_SPP samples on
 every masked pixel. Prints relative RMSE, the share of pixels more than 50% off the
 reference, the median error the integrator reports (before filtering) and the time of the
 render and of the filter; writes bench/results/denoise.json.
@@ -33,7 +33,7 @@ from relightcli.render.denoise import filtered_shading  # noqa: E402
 from relightcli.render.environment import EnvironmentLight  # noqa: E402
 from relightcli.render.integrator import shade_environment  # noqa: E402
 from relightcli.render.scene import Scene  # noqa: E402
-from relightcli.stages import SHADOW_LIFT  # noqa: E402
+from relightcli.stages.shading import SHADOW_LIFT  # noqa: E402
 
 MAPS = ("noon_grass_1k.hdr", "kloofendal_overcast_1k.hdr", "brown_photostudio_02_1k.hdr",
         "autoshop_01_1k.hdr", "circus_arena_1k.hdr")

@@ -39,7 +39,7 @@ from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import Models  # noqa: E402
+from relightcli.stages.frame import Models  # noqa: E402
 
 # (left, right) bone heads of the 12 main joints
 JOINTS = ("upperarm01", "lowerarm01", "wrist", "upperleg01", "lowerleg01", "foot")

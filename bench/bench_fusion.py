@@ -42,7 +42,7 @@ Poisson: 3-6 s a photo at 512 (2 busy cores), watertight in 10/16, 19/20, 8/15, 
 fits (non-manifold edges), covers 100% of the person's pixels (the reconstruction 96-97%).
 Its gain with the predicted mask came from covering the mask's soft edge, which the pipeline
 left black; filling that edge from the nearest covered pixel (`_soft`) gains more without it,
-and ships (stages.stage_raytrace).
+and ships (stages.shading.stage_raytrace).
 """
 
 from __future__ import annotations
@@ -71,8 +71,11 @@ from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.render.camera import pixel_centres, render_pixel_geometry  # noqa: E402
 from relightcli.render.integrator import shade_environment  # noqa: E402
 from relightcli.render.scene import Scene  # noqa: E402
-from relightcli.stages import (BODY_SHADING_WEIGHT, Models, body_shading_pixels, fill_uncovered,  # noqa: E402
-                               layer_image, sampling_effort)
+from relightcli.compose import fill_uncovered
+from relightcli.stages.body import body_shading_pixels
+from relightcli.stages.compose import layer_image
+from relightcli.stages.frame import Models
+from relightcli.stages.shading import BODY_SHADING_WEIGHT, sampling_effort
 
 POISSON_DEPTH = 8  # octree depth: a 256^3 grid, ~2 crop pixels a cell at 512
 

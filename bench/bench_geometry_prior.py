@@ -17,7 +17,7 @@ the normals' angle on the person's pixels the fitted body covers:
              of the predicted ones: the ceiling of what better normals alone can bring
 
 A scene without a converged fit runs the net alone in every variant (the runtime's fallback).
-`--body-weight W` sets the fitted bodies' share of the traced shading (stages.BODY_SHADING_WEIGHT,
+`--body-weight W` sets the fitted bodies' share of the traced shading (stages.shading.BODY_SHADING_WEIGHT,
 shipped 0.5) for every variant.
 """
 
@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from relightcli import compose, stages  # noqa: E402
+from relightcli.stages import shading as shading_stages  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.errors import RelightError  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene, normal_metrics, scene_metrics  # noqa: E402
@@ -42,7 +43,8 @@ from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.nets.geometry import GeometryNet  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import Models, layer_image, resample, unit  # noqa: E402
+from relightcli.stages.compose import layer_image  # noqa: E402
+from relightcli.stages.frame import Models, resample, unit  # noqa: E402
 
 
 class BodyNormals:
@@ -123,7 +125,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     if args.body_weight is not None:
-        stages.BODY_SHADING_WEIGHT = args.body_weight
+        shading_stages.BODY_SHADING_WEIGHT = args.body_weight
     variants = args.variants.split(",")
     models = {v: VariantModels(2, v) for v in variants}
     rows = {v: [] for v in variants}

@@ -36,7 +36,7 @@ def stage_times(runs: int, resolution: int, threads: int, spp, target_error,
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
     from relightcli.pipeline import RelightOptions, run_stages
-    from relightcli.stages import Models
+    from relightcli.stages.frame import Models
 
     image = read_image(photo)
     mask = None if predict_mask else read_image(mask_path, srgb=False).rgb[..., 0]

@@ -12,7 +12,7 @@ exposure) in sRGB, clipped, around the people (the true and the predicted person
 px) and on the true person alone, over the kept photo (`--background keep`, the default), the
 environment view (`env`), black and grey, for the mask as alpha and for sharpened mattes (the
 mask stretched from low..high to 0..1, compose.PREDICTED_MATTE, used over
-stages.SHARPENED_OVER). The people and the mask are the pipeline's own (no --mask). Choose
+stages.compose.SHARPENED_OVER). The people and the mask are the pipeline's own (no --mask). Choose
 the matte here, on validation folders.
 """
 
@@ -35,7 +35,8 @@ from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import linear_to_srgb, read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import SHARPENED_OVER, Models, background_view, scene_exposure  # noqa: E402
+from relightcli.stages.compose import SHARPENED_OVER, background_view, scene_exposure  # noqa: E402
+from relightcli.stages.frame import Models  # noqa: E402
 
 BACKGROUNDS = ("keep", "env", "#000000", "#808080")
 

@@ -26,7 +26,8 @@ STAGES_TO_FACE = ("people", "mask", "crop", "geometry", "face")
 def face_note(scene, options, models) -> tuple[dict, float]:
     """The face stage's note on one scene and the stage's wall time (seconds)."""
     from relightcli.io.images import read_image
-    from relightcli.stages import STAGES, Frame
+    from relightcli.stages import STAGES
+    from relightcli.stages.frame import Frame
 
     image = read_image(scene.input_path, max_pixels=options.max_pixels)
     frame = Frame(image=image.rgb, mask=scene.mask, env=np.zeros((4, 8, 3), np.float32))
@@ -41,7 +42,7 @@ def face_note(scene, options, models) -> tuple[dict, float]:
 def main() -> int:
     from relightcli.evaluate import find_scenes, load_scene
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import Models
+    from relightcli.stages.frame import Models
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset")

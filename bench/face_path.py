@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 def shading_with(models_dir: Path, scene, options) -> np.ndarray:
     from relightcli.pipeline import predict_scene
-    from relightcli.stages import Models
+    from relightcli.stages.frame import Models
 
     os.environ["RELIGHT_MODELS_DIR"] = str(models_dir)
     return predict_scene(scene, options, use_gt_mask=True, models=Models(options.threads))["shading"]

@@ -33,7 +33,7 @@ from relightcli.evaluate import find_scenes, layer_metrics, load_scene  # noqa: 
 from relightcli.io.envmap import load_envmap, texel_solid_angles  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import Models  # noqa: E402
+from relightcli.stages.frame import Models  # noqa: E402
 
 SOURCES = ("ratio", "solve")
 

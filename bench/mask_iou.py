@@ -45,7 +45,7 @@ def scenes(folders: list[str]) -> list[tuple[str, Path, Path]]:
 class Masks:
     def __init__(self, resolution: int = 512):
         from relightcli.nets.pose import PersonDetector, PoseLandmarker
-        from relightcli.stages import Models
+        from relightcli.stages.frame import Models
 
         self.models = Models(threads=2)
         self.detector, self.landmarker = PersonDetector(threads=2), PoseLandmarker(threads=2)
@@ -66,7 +66,8 @@ class Masks:
     def stage(self, linear: np.ndarray) -> tuple[np.ndarray, int]:
         from relightcli.errors import RelightError
         from relightcli.pipeline import RelightOptions
-        from relightcli.stages import Frame, stage_mask, stage_people
+        from relightcli.stages.frame import Frame
+        from relightcli.stages.people import stage_mask, stage_people
 
         frame = Frame(image=linear, mask=None, env=np.ones((4, 8, 3), np.float32))
         options = RelightOptions(resolution=self.resolution)

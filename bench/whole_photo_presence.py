@@ -30,7 +30,7 @@ from relightcli.nets.pose import (  # noqa: E402
     find_people,
     find_person_in_photo,
 )
-from relightcli.stages import PerceptionView  # noqa: E402
+from relightcli.stages.frame import PerceptionView  # noqa: E402
 
 HDRI = REPO.parent / "shared" / "data" / "hdri"
 VIEWS = ((0.0, 512, 384), (120.0, 384, 512), (240.0, 512, 512))  # yaw (degrees), width, height

@@ -19,7 +19,7 @@ from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image, write_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
-from relightcli.stages import Models  # noqa: E402
+from relightcli.stages.frame import Models  # noqa: E402
 
 EXAMPLES = REPO / "examples"
 ENVIRONMENTS = ("noon_grass.hdr", "kloofendal_overcast.hdr")

@@ -8,3 +8,16 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    """relightcli.relight, relightcli.Relighter and relightcli.Result (relightcli.api), imported
+    on first use: `relight --help` and the workers' start stay light."""
+    if name in ("relight", "Relighter", "Result"):
+        from relightcli import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'relightcli' has no attribute {name!r}")
+
+
+__all__ = ["relight", "Relighter", "Result", "__version__"]

@@ -295,7 +295,7 @@ def run_items(
     `setup()` once); the reports come back in input order whatever the number of workers.
     RelightWarnings raised while processing an item are recorded into its report.
 
-    An item's outputs appear together or not at all (see `_relight_staged`). A KeyboardInterrupt
+    An item's outputs appear together or not at all (see `relight_staged`). A KeyboardInterrupt
     (Ctrl-C, or the CLI's SIGTERM handler raising `Stopped`) stops the batch at once: the items
     in flight are discarded, the worker processes killed, and `Stopped` is raised carrying the
     reports (finished items as they are, the others marked stopped).
@@ -496,7 +496,7 @@ def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool,
                 raise OutputError(
                     "output exists", path=existing[0], fix="pass --overwrite or --skip-existing"
                 )
-            report = _relight_staged(replace(item, outputs=todo), worker,
+            report = relight_staged(replace(item, outputs=todo), worker,
                                      commit_guard or contextlib.nullcontext())
         except RelightError as exc:
             report = ItemReport(str(item.input), error=str(exc), exit_code=exc.exit_code)
@@ -515,7 +515,7 @@ def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool,
     return report
 
 
-def _relight_staged(item: Item, worker, commit_guard) -> ItemReport:
+def relight_staged(item: Item, worker, commit_guard) -> ItemReport:
     """Run `worker` with every output going to a hidden staging file next to its final path,
     then rename them all into place under `commit_guard` (a lock, or a signal deferral): the
     item's outputs appear together or not at all, and an item stopped or failed before its

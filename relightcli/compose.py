@@ -257,7 +257,7 @@ def parse_colour(text: str) -> np.ndarray:
 
 # A predicted mask is a segmentation's probability, not an alpha matte: the relit output over
 # the photo or the environment view is composited with it sharpened, PREDICTED_MATTE[0]..[1]
-# stretched to 0..1 (relightcli.stages.relit_matte), so the relit person is opaque where the
+# stretched to 0..1 (relightcli.stages.compose.relit_matte), so the relit person is opaque where the
 # segmentation is fairly sure (the background does not show through) and the unsure fringe,
 # often background the segmentation spilled onto, is left to the background. Measured against
 # the true composite (the true relit person over the same background by the true mask; `python

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 # tracing for a 512 crop. `--target-error` / `--spp` ask for more.
 DEFAULT_TARGET_ERROR, DEFAULT_SPP_CAP = 0.04, 32
 
-# Where rays for cast shadows and occlusion are traced (stages.traced): "half" every second
+# Where rays for cast shadows and occlusion are traced (stages.shading.traced): "half" every second
 # pixel of the crop in both directions, the visibility found there applied to every pixel's
 # own unoccluded shading (the eval scores within 0.07 dB of "full", the ray tracing stage
 # takes 0.6x the time); "full" every pixel.
@@ -21,7 +21,7 @@ SHADOW_STEP = {"half": 2, "full": 1}
 # The solved input light's shading, which the albedo divides by (`--albedo solve`), comes from a
 # 16 x 32 map whose texels span 11 degrees: its shadows are soft, and "half" traces it on a grid
 # of about this many pixels across the crop (every fourth pixel at 512, every second at 256:
-# stages.input_shadow_step)
+# stages.delight.input_shadow_step)
 INPUT_SHADOW_GRID = 128
 DEFAULT_SHADOWS = "half"
 

@@ -157,7 +157,7 @@ class RelightWorker:
         import cv2
 
         from relightcli.io.images import set_io_threads
-        from relightcli.stages import Models
+        from relightcli.stages.frame import Models
 
         cv2.setNumThreads(self.options.threads)
         set_io_threads(self.options.threads)
@@ -177,14 +177,10 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
     options.turntable = N, they run N times under the (one) map turned 360/N degrees apart.
     Outputs keyed 'relit#003' / 'shading#003' / 'preview#003' receive lighting 3."""
     from relightcli.io.envmap import rotate_envmap
-    from relightcli.io.images import read_image
 
     report = ItemReport(str(item.input))
     with _timed(report, "load"):
-        image = read_image(item.input, max_pixels=options.max_pixels)
-        _check_usable_size(image, item.input)
-        mask_path, mask_source = _mask_file(options.mask_path, item.mask)
-        mask = _input_mask(image, mask_path, options.max_pixels, item.input)
+        image, mask, mask_source = read_input(item.input, item.mask, options)
     lightings = list(env) if isinstance(env, (list, tuple)) else [env]
     if options.turntable:
         lightings = [rotate_envmap(lightings[0], 360.0 * k / options.turntable) for k in range(options.turntable)]
@@ -210,6 +206,17 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
     return report
 
 
+def read_input(path: Path, own_mask: Path | None, options: RelightOptions):
+    """(the photo's Image, its (H, W) person mask or None, the report's word for where the mask
+    came from) for the photo at `path`; `own_mask`: its own NAME_mask file (batch.pair_masks)."""
+    from relightcli.io.images import read_image
+
+    image = read_image(path, max_pixels=options.max_pixels)
+    check_usable_size(image, path)
+    mask_path, mask_source = _mask_file(options.mask_path, own_mask)
+    return image, input_mask(image, mask_path, options.max_pixels, path), mask_source
+
+
 def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: ItemReport, models=None,
                *, lightings=None, on_lighting=None, mask_source=None):
     """Plan and run the stages on arrays. Returns (frame, plan).
@@ -219,7 +226,8 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     lightings: environments to relight under in turn (default [env]); the stages that do not
     depend on the lighting run once, the others once per environment, each followed by
     on_lighting(index, frame). Stage times add up over the lightings."""
-    from relightcli.stages import LIGHTING_STAGES, STAGES, Frame, Models
+    from relightcli.stages import LIGHTING_STAGES, STAGES
+    from relightcli.stages.frame import Frame, Models
 
     models = models or Models(options.threads)
     plan = plan_stages(options, has_alpha=mask is not None)
@@ -252,10 +260,10 @@ def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, 
     from relightcli.compose import paste_back
     from relightcli.io.envmap import load_envmap
     from relightcli.io.images import read_image
-    from relightcli.stages import layer_image
+    from relightcli.stages.compose import layer_image
 
     image = read_image(scene.input_path, max_pixels=options.max_pixels)
-    _check_usable_size(image, scene.input_path)
+    check_usable_size(image, scene.input_path)
     env = load_envmap(scene.target_path)
     mask = scene.mask if use_gt_mask else None
     frame, _ = run_stages(image.rgb, mask, env, options, ItemReport(str(scene.folder)), models)
@@ -268,7 +276,7 @@ def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, 
     }
 
 
-def _check_usable_size(image, path) -> None:
+def check_usable_size(image, path) -> None:
     height, width = image.rgb.shape[:2]
     if min(height, width) < MIN_SIDE:
         raise InputError(
@@ -286,7 +294,7 @@ def _mask_file(option_path, own_path):
     return own_path, None if own_path is None else f"{own_path} (the photo's own mask)"
 
 
-def _input_mask(image, mask_path, max_pixels, input_path):
+def input_mask(image, mask_path, max_pixels, input_path):
     """The person mask from the file `mask_path` (--mask or the photo's own NAME_mask file)
     or else the input's alpha, (H, W) float32 in [0, 1], or None."""
     from relightcli.io.images import read_image
@@ -317,7 +325,7 @@ def _input_mask(image, mask_path, max_pixels, input_path):
 def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
     """Write one output layer of a finished frame (atomic writes)."""
     from relightcli.io.images import write_image
-    from relightcli.stages import fits_half, layer_image, preview_tiles
+    from relightcli.stages.compose import fits_half, layer_image, preview_tiles
 
     suffix = Path(path).suffix.lower()
     if name == "light":

@@ -12,7 +12,8 @@ from relightcli.errors import RelightWarning
 from relightcli.io.envmap import expose
 from relightcli.io.images import read_image
 from relightcli.pipeline import RelightOptions, write_layer
-from relightcli.stages import Frame, relit_image, scene_exposure, stage_compose
+from relightcli.stages.compose import relit_image, scene_exposure, stage_compose
+from relightcli.stages.frame import Frame
 
 SIDE = 32
 

@@ -165,7 +165,7 @@ def test_a_close_portrait_without_a_body_is_found_by_its_face(tmp_path, capsys):
 def test_a_large_photo_is_seen_shrunk_and_answered_at_full_size(tmp_path, capsys):
     """Perception runs on a copy at most PERCEPTION_MAX_SIDE on its long side (a full-size sRGB
     copy of a 24 MP photo is 288 MB); the mask and the report come back in the photo's pixels."""
-    from relightcli.stages import PERCEPTION_MAX_SIDE
+    from relightcli.stages.frame import PERCEPTION_MAX_SIDE
 
     skier, mask = cv2.imread(str(REPO / "examples" / "skier.jpg")), truth(REPO / "examples" / "skier_mask.png")
     factor = 2 * PERCEPTION_MAX_SIDE / skier.shape[1]  # the view is half the photo's size

@@ -16,7 +16,8 @@ from relightcli.nets.blaze import Detection
 from relightcli.nets.geometry import GeometryMaps
 from relightcli.nets.pose import Pose
 from relightcli.pipeline import RelightOptions, plan_stages, run_stages
-from relightcli.stages import Models, layer_image
+from relightcli.stages.compose import layer_image
+from relightcli.stages.frame import Models
 
 
 def plan(outputs, method="raytrace", has_alpha=True, albedo="ratio"):
@@ -272,7 +273,7 @@ def test_over_an_image_the_relit_output_sharpens_a_predicted_mask_and_keeps_an_i
     # output's alpha it stays the mask, as does a mask the user gives, and the layer files
     from relightcli import pipeline
     from relightcli.compose import PREDICTED_MATTE, paste_back, sharpened
-    from relightcli.stages import background_view
+    from relightcli.stages.compose import background_view
 
     monkeypatch.setattr(pipeline, "_ships", lambda model: False)
     image, mask = photo_with_person()
@@ -323,7 +324,8 @@ class Undetected(StandInModels):
 
 
 def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody():
-    from relightcli.stages import Frame, stage_people
+    from relightcli.stages.frame import Frame
+    from relightcli.stages.people import stage_people
 
     models = Undetected()
     rects = models.rects
@@ -341,7 +343,8 @@ def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody():
 @pytest.mark.parametrize("presence, found", [(0.999, True), (0.99, False)])
 def test_without_a_mask_the_landmarks_look_at_the_whole_photo_when_the_detector_finds_nobody(presence, found):
     from relightcli.nets.pose import WHOLE_PHOTO_PRESENCE
-    from relightcli.stages import Frame, stage_people
+    from relightcli.stages.frame import Frame
+    from relightcli.stages.people import stage_people
 
     models = Undetected(presence)
     rects = models.rects
@@ -479,7 +482,8 @@ def test_shadows_are_traced_on_every_second_pixel_unless_asked_for_every_pixel(s
 def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction():
     from types import SimpleNamespace
 
-    from relightcli.stages import BODY_SHADING_WEIGHT, stage_body_maps, stage_raytrace
+    from relightcli.stages.body import stage_body_maps
+    from relightcli.stages.shading import BODY_SHADING_WEIGHT, stage_raytrace
 
     models = PlateBodyModels()
     frame, options = _ball_frame(models)
@@ -502,7 +506,8 @@ def test_a_converged_body_fit_is_ray_traced_and_averaged_with_the_reconstruction
 def test_the_ao_layer_blends_in_the_fitted_bodies_traced_ao_and_the_refinement_keeps_the_nets():
     from types import SimpleNamespace
 
-    from relightcli.stages import BODY_AO_WEIGHT, stage_ao, stage_body_maps
+    from relightcli.stages.body import stage_body_maps
+    from relightcli.stages.geometry import BODY_AO_WEIGHT, stage_ao
 
     models = PlateBodyModels()
     frame, options = _ball_frame(models)
@@ -529,7 +534,8 @@ def test_the_ao_layer_blends_in_the_fitted_bodies_traced_ao_and_the_refinement_k
 def test_the_ao_prior_net_reads_the_fitted_bodies_maps_and_traced_ao():
     from types import SimpleNamespace
 
-    from relightcli.stages import stage_ao, stage_body_maps
+    from relightcli.stages.body import stage_body_maps
+    from relightcli.stages.geometry import stage_ao
 
     models = PlateBodyModels()
     frame, options = _ball_frame(models)
@@ -573,7 +579,7 @@ def test_the_ao_layer_plans_the_body_fit(monkeypatch):
 
 
 def test_the_blend_of_two_renders_reaches_the_target_with_samples_in_proportion_to_weight():
-    from relightcli.stages import blend_targets
+    from relightcli.stages.shading import blend_targets
 
     for weight in (0.1, 0.3, 0.5, 0.9):
         own, body = blend_targets(0.04, weight, everywhere=True)
@@ -589,7 +595,8 @@ def test_the_blend_of_two_renders_reaches_the_target_with_samples_in_proportion_
 def test_the_blended_shading_reports_its_own_error():
     from types import SimpleNamespace
 
-    from relightcli.stages import stage_body_maps, stage_raytrace
+    from relightcli.stages.body import stage_body_maps
+    from relightcli.stages.shading import stage_raytrace
 
     models = PlateBodyModels()
     frame, options = _ball_frame(models)
@@ -612,7 +619,8 @@ def test_a_person_whose_fit_did_not_converge_keeps_the_reconstruction_shading():
     from types import SimpleNamespace
 
     from relightcli import compose
-    from relightcli.stages import Frame, PerceptionView, body_shading_pixels
+    from relightcli.stages.body import body_shading_pixels
+    from relightcli.stages.frame import Frame, PerceptionView
 
     frame = Frame(image=np.zeros((20, 20, 3), np.float32), mask=None, env=None,
                   crop_mask=np.ones((10, 10), np.float32), box=compose.CropBox(0, 0, 20, 10))
@@ -626,7 +634,7 @@ def test_a_person_whose_fit_did_not_converge_keeps_the_reconstruction_shading():
 
 
 def test_uncovered_mask_pixels_take_the_nearest_shading():
-    from relightcli.stages import fill_uncovered
+    from relightcli.compose import fill_uncovered
 
     shading = np.zeros((1, 5, 3), np.float32)
     shading[0, 0] = 1.0
@@ -703,7 +711,10 @@ class LowResolutionModels(StandInModels):
 
 
 def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one():
-    from relightcli.stages import Frame, stage_ao, stage_crop, stage_delight, stage_geometry
+    from relightcli.stages.crop import stage_crop
+    from relightcli.stages.delight import stage_delight
+    from relightcli.stages.frame import Frame
+    from relightcli.stages.geometry import stage_ao, stage_geometry
 
     image, mask = photo_with_person()
     models = LowResolutionModels()
@@ -719,7 +730,7 @@ def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one(
 
 def test_the_solved_light_is_made_grey_and_keeps_its_own_shape_and_luminance():
     from relightcli.compose import LUMINANCE
-    from relightcli.stages import grey_light
+    from relightcli.stages.delight import grey_light
 
     rng = np.random.default_rng(0)
     shape = rng.uniform(0.1, 2.0, (16, 32, 1)).astype(np.float32)

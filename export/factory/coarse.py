@@ -53,7 +53,7 @@ def working_frame(sample: dict, meta: dict | None):
     `meta` is None: the stages that need none)."""
     from relightcli import compose
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import Frame
+    from relightcli.stages.frame import Frame
 
     size = sample["input"].shape[0]
     options = RelightOptions(resolution=size, seed=0, threads=1)
@@ -69,8 +69,10 @@ def coarse_arrays(sample: dict, meta: dict, models, bodies: bool = True) -> tupl
     runtime's chain: with `bodies`, people -> body fit -> body maps first, so where a fit
     converges the geometry comes from the prior net and the coarse shading is the blend with
     the bodies' (as `relight` makes it); without, the image-alone path."""
-    from relightcli.stages import (stage_ao, stage_body, stage_body_maps, stage_geometry, stage_people,
-                                   stage_raytrace, stage_reconstruct)
+    from relightcli.stages.body import stage_body, stage_body_maps
+    from relightcli.stages.geometry import stage_ao, stage_geometry, stage_reconstruct
+    from relightcli.stages.people import stage_people
+    from relightcli.stages.shading import stage_raytrace
 
     frame, options = working_frame(sample, meta)
     chain = (stage_people, stage_body, stage_body_maps) if bodies else ()
@@ -87,7 +89,7 @@ def coarse_arrays(sample: dict, meta: dict, models, bodies: bool = True) -> tupl
 
 def normal_arrays(sample: dict, meta: dict, models) -> tuple[dict, dict]:
     """({"normal_pred"}, {}) of one loaded sample: the geometry net's normals, zero outside."""
-    from relightcli.stages import stage_geometry
+    from relightcli.stages.geometry import stage_geometry
 
     frame, options = working_frame(sample, meta)
     stage_geometry(frame, options, models)
@@ -101,8 +103,10 @@ def prior_arrays(sample: dict, meta: dict, models, with_ao: bool = False) -> tup
     true mask as the silhouette), at the sample's resolution; all zero when no fit converged
     (the statistics say why). The prior net's input is relightcli.nets.geometry.prior_channels
     of these. with_ao: also "prior_ao", the bodies' ray-traced ambient occlusion as the runtime
-    traces it (relightcli.stages.body_ao) where a fit converged, zero elsewhere."""
-    from relightcli.stages import body_ao, body_shading_pixels, stage_body, stage_body_maps, stage_people
+    traces it (relightcli.stages.geometry.body_ao) where a fit converged, zero elsewhere."""
+    from relightcli.stages.body import body_shading_pixels, stage_body, stage_body_maps
+    from relightcli.stages.geometry import body_ao
+    from relightcli.stages.people import stage_people
 
     frame, options = working_frame(sample, None)
     for stage in (stage_people, stage_body, stage_body_maps):
@@ -144,7 +148,7 @@ _MODELS = None
 
 def _worker_init():
     global _MODELS
-    from relightcli.stages import Models
+    from relightcli.stages.frame import Models
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     _MODELS = Models(threads=1)

@@ -4,7 +4,7 @@ shading: `python -m export.factory.face_closeups DATA OUT [--workers N]`.
 For every sample of the body dataset DATA whose face is visible, the same person, camera and
 lighting A are rendered again in a head square around its face (HEAD_CROP_SCALE x the face
 box's longer side, as the runtime's head square is that many times the pose's face landmarks),
-and the runtime's face chain (relightcli.stages.stage_face) runs on it as on a person crop:
+and the runtime's face chain (relightcli.stages.face.stage_face) runs on it as on a person crop:
 
     photo under A (seen at the person crop's resolution: downsampled to a random side in
     RUNTIME_HEAD_PX, then enlarged back, as geometry.face.cut_crop enlarges it)
@@ -118,7 +118,7 @@ def render_square(person, spec, meta: dict, square, size: int, seed: int, lit_b:
 
 
 def runtime_face_fit(seen, mask, front_depth, square, face_nets, face_model):
-    """relightcli.stages.stage_face on a head square seen as the person crop: `seen` (S, S, 3)
+    """relightcli.stages.face.stage_face on a head square seen as the person crop: `seen` (S, S, 3)
     float32 linear RGB, `mask` (S, S) the person, `front_depth` (S, S) world z, `square` its
     world rectangle. Returns (FaceFit, info) with the fit in the 128 face crop framed as at
     run time, or None where the runtime finds no face or skips the fit."""
@@ -126,7 +126,7 @@ def runtime_face_fit(seen, mask, front_depth, square, face_nets, face_model):
     from relightcli.geometry.face_correspondence import load_correspondence
     from relightcli.io.images import linear_to_srgb
     from relightcli.nets.face_mesh import find_face
-    from relightcli.stages import person_mask_at
+    from relightcli.stages.face import person_mask_at
 
     srgb = np.clip(linear_to_srgb(np.nan_to_num(seen)), 0.0, 1.0).astype(np.float32)
     face, _ = find_face(srgb, None, *face_nets)

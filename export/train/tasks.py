@@ -406,7 +406,7 @@ class FaceRefineTask(GANTask):
         shading, mask = sample[self.config.shading_key], sample["mask"] * sample["face_pixels"]
         if shading.shape[0] != self.config.face_crop_size or not mask.any():
             return None
-        # The runtime's normaliser: the scale of the body shading it gets (stages.stage_face_refine)
+        # The runtime's normaliser: the scale of the body shading it gets (stages.face.stage_face_refine)
         scale = np.float32(shading_scale(sample["body_shading_b"], sample["mask"]))
         return {"body_shading": chw(sample["body_shading_b"] / scale), "face_shading": chw(sample[key] / scale),
                 "shading": chw(shading / scale), "mask": chw(mask)}

@@ -234,13 +234,24 @@ def load_envmap(path, *, rotate_deg=0.0, exposure_ev=0.0, max_pixels=ENVMAP_MAX_
             "for faithful lighting", RelightWarning, stacklevel=2)
     if counts is not None and any(counts.values()):
         _warn_repaired(counts, largest, path)
-    env = validate_envmap(rgb, path=path)
+    return envmap_from_array(rgb, rotate_deg=rotate_deg, exposure_ev=exposure_ev,
+                             working_height=working_height, path=path)
+
+
+def envmap_from_array(env, *, rotate_deg=0.0, exposure_ev=0.0, working_height=ENVMAP_WORKING_HEIGHT,
+                      path=None):
+    """An environment map held in memory, made ready as `load_envmap` makes a file's:
+    `validate_envmap`, area-resampled to at most `working_height` rows, a warning when it is
+    all black, turned by `rotate_deg` and scaled by 2 ** `exposure_ev`. env: (H, 2H, 3) linear
+    radiance; path: the file it came from, named in messages (None: an array).
+    Returns (h, 2h, 3) float32."""
+    env = validate_envmap(env, path=path)
     if env.shape[0] > working_height:  # a file read whole (an unusual layout): reduce now
         env = resample_envmap(env, working_height)
     if not env.any():
-        warnings.warn(
-            f"{path}: environment map is all black (no light): the relit person will be black",
-            RelightWarning, stacklevel=2)
+        where = "environment map" if path is None else f"{path}: environment map"
+        warnings.warn(f"{where} is all black (no light): the relit person will be black",
+                      RelightWarning, stacklevel=3)
     if rotate_deg:
         env = rotate_envmap(env, rotate_deg)
     if exposure_ev:

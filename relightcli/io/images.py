@@ -292,6 +292,36 @@ def _is_integer(spec: oiio.ImageSpec) -> bool:
     return spec.format.basetype not in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
 
 
+def image_from_array(array: np.ndarray, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> Image:
+    """An Image from pixels held in memory, read as `read_image` reads a file's: (H, W), (H, W,
+    3) or (H, W, 4) (the fourth channel a straight alpha). uint8 / uint16 arrays are sRGB codes,
+    decoded to linear as an 8/16-bit file is (alpha as data); float arrays are linear, as an EXR
+    is. Raises InputError for another shape or dtype, or more than `max_pixels` pixels."""
+    array = np.asarray(array)
+    where = "the image array"
+    if array.ndim == 2:
+        array = array[:, :, None]
+    if array.ndim != 3 or array.shape[2] not in (1, 3, 4) or 0 in array.shape:
+        raise InputError(f"an image array must be (H, W), (H, W, 3) or (H, W, 4), got shape {array.shape}",
+                         path=where, fix="pass grey, RGB or RGBA pixels")
+    if array.dtype not in (np.uint8, np.uint16) and not np.issubdtype(array.dtype, np.floating):
+        raise InputError(f"an image array must be uint8, uint16 or float, got {array.dtype}",
+                         path=where, fix="pass sRGB codes as uint8/uint16 or linear values as float32")
+    _refuse_pixel_count(array.shape[1], array.shape[0], where, max_pixels)
+    channels = array.shape[2]
+    rgb = np.repeat(array[..., :1], 3, axis=2) if channels == 1 else array[..., :3]
+    alpha = array[..., 3] if channels == 4 else None
+    encoded = array.dtype in (np.uint8, np.uint16)
+    if encoded:
+        rgb = _decode_codes(np.ascontiguousarray(rgb), srgb=True)
+        alpha = None if alpha is None else _decode_codes(np.ascontiguousarray(alpha), srgb=False)
+    else:
+        rgb = np.array(rgb, dtype=np.float32)
+        if alpha is not None:
+            alpha = np.clip(np.nan_to_num(alpha.astype(np.float32), nan=0.0), 0.0, 1.0)
+    return Image(rgb, alpha, where, encoded, array.dtype.itemsize * 8)
+
+
 def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS, srgb: bool = True) -> Image:
     """Read an image file into linear float32 RGB plus an optional straight alpha.
 

@@ -79,7 +79,7 @@ def prior_channels(mask: np.ndarray, front_normal: np.ndarray, back_normal: np.n
     and renormalised, depths made translation-invariant like the net's own (minus the mean front
     depth over the body; the crop spans [-1, 1], so they are already in the net's unit), the
     body's coverage in [0, 1]; all zero where no body covers a pixel. The data factory
-    (export/factory/coarse.py) and the runtime (stages.stage_geometry) both call this."""
+    (export/factory/coarse.py) and the runtime (stages.geometry.stage_geometry) both call this."""
     import cv2
 
     covered = np.asarray(mask, np.float32)
@@ -123,9 +123,9 @@ class GeometryPriorNet(GeometryNet):
 
 def ao_prior_channels(prior: np.ndarray, body_ao: np.ndarray) -> np.ndarray:
     """(side, side, 10) float32: `prior_channels` (side, side, 9) and the fitted bodies'
-    ray-traced AO (relightcli.stages.body_ao, any square resolution, zero where no fit
+    ray-traced AO (relightcli.stages.geometry.body_ao, any square resolution, zero where no fit
     converged) resampled to the same side, as the AO prior net reads them. The data factory
-    (export/factory/coarse.py --prior-ao) and the runtime (stages.stage_ao) both call this."""
+    (export/factory/coarse.py --prior-ao) and the runtime (stages.geometry.stage_ao) both call this."""
     import cv2
 
     side = prior.shape[0]

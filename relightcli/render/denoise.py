@@ -83,7 +83,7 @@ def visibility(result, light, normal: np.ndarray):
 def filtered_shading(result, light, normal: np.ndarray, radius: int = RADIUS) -> np.ndarray:
     """(H, W, 3) float32: the render's shading with its visibility filtered (adaptive_wiener on
     the integrator's own error), times each pixel's unoccluded shading; dark pixels as rendered.
-    What `relight shade --denoise` writes; stages.traced filters the same way."""
+    What `relight shade --denoise` writes; stages.shading.traced filters the same way."""
     seen, error, unoccluded, dark = visibility(result, light, normal)
     seen = adaptive_wiener(seen, error, result.mask & ~dark.any(axis=-1), radius)
     return np.where(dark, result.mean, seen * unoccluded).astype(np.float32)

@@ -13,7 +13,8 @@ import pytest
 from export.factory import coarse, dataset, face_closeups, generate, lighting, render
 from export.train.data import relative_depths
 from relightcli.nets.geometry import GeometryMaps
-from relightcli.stages import Models, mirror
+from relightcli.stages.frame import Models
+from relightcli.stages.geometry import mirror
 
 RES = 64
 CONFIG = generate.GenerationConfig(
@@ -172,7 +173,8 @@ def test_the_prior_maps_are_the_runtimes_own():
     from relightcli.io.images import read_image
     from relightcli.nets.geometry import prior_channels
     from relightcli.pipeline import RelightOptions, run_stages
-    from relightcli.stages import body_ao, body_shading_pixels
+    from relightcli.stages.body import body_shading_pixels
+    from relightcli.stages.geometry import body_ao
 
     data = Path(__file__).resolve().parents[1] / "data"
     photo = read_image(data / "tpose_render.png").rgb

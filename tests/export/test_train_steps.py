@@ -177,7 +177,7 @@ def test_face_refinement_on_closeups_reports_the_gain_over_the_body_shading(tmp_
 
 
 def test_face_closeups_are_normalised_by_the_body_shading_as_at_run_time(tmp_path):
-    """stages.stage_face_refine divides by the scale of the body shading it has, not the truth's."""
+    """stages.face.stage_face_refine divides by the scale of the body shading it has, not the truth's."""
     from relightcli.nets.refine import shading_scale
 
     data = RenderedDataset({"train": 4, "val": 2, "test": 1}, size=32, seed=0)

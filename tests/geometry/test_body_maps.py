@@ -16,7 +16,9 @@ from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 from relightcli.pipeline import RelightOptions
 from relightcli.render.camera import pixel_centres
 from relightcli.render.scene import Scene
-from relightcli.stages import Frame, Models, body_layer, stage_body_maps
+from relightcli.stages.body import stage_body_maps
+from relightcli.stages.compose import body_layer
+from relightcli.stages.frame import Frame, Models
 
 RADIUS, CENTRE_Z = 0.5, 0.2
 

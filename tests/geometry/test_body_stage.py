@@ -16,14 +16,10 @@ from relightcli.io.images import read_image
 from relightcli.pipeline import RelightOptions
 from relightcli.render.camera import render_pixel_geometry
 from relightcli.render.scene import Scene
-from relightcli.stages import (
-    Frame,
-    Models,
-    person_keypoints_in_crop,
-    stage_body,
-    stage_crop,
-    stage_people,
-)
+from relightcli.stages.body import stage_body
+from relightcli.stages.crop import person_keypoints_in_crop, stage_crop
+from relightcli.stages.frame import Frame, Models
+from relightcli.stages.people import stage_people
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 

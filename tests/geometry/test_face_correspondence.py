@@ -58,7 +58,7 @@ def test_the_face_stage_fits_the_face_of_an_evaluation_scene():
 
     from relightcli.evaluate import load_scene
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import Models
+    from relightcli.stages.frame import Models
 
     options = RelightOptions(threads=1)
     note, _ = face_note(load_scene(folder), options, Models(1))
@@ -69,7 +69,8 @@ def test_the_face_stage_fits_the_face_of_an_evaluation_scene():
 
 def _frame_without_a_face(pixel_value):
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import Frame, stage_crop
+    from relightcli.stages.crop import stage_crop
+    from relightcli.stages.frame import Frame
 
     image = np.full((120, 90, 3), pixel_value, np.float32)
     mask = np.zeros((120, 90), np.float32)
@@ -81,7 +82,8 @@ def _frame_without_a_face(pixel_value):
 
 @pytest.mark.parametrize("pixel_value", [0.4, np.nan])
 def test_no_people_and_no_face_skips_with_the_reason(pixel_value):
-    from relightcli.stages import Models, stage_face
+    from relightcli.stages.face import stage_face
+    from relightcli.stages.frame import Models
 
     frame = _frame_without_a_face(pixel_value)
     stage_face(frame, None, Models(1))
@@ -92,7 +94,8 @@ def test_no_people_and_no_face_skips_with_the_reason(pixel_value):
 def test_a_head_outside_the_photo_skips_with_the_reason():
     from relightcli.nets.blaze import Detection
     from relightcli.nets.pose import Person, Pose
-    from relightcli.stages import Models, stage_face
+    from relightcli.stages.face import stage_face
+    from relightcli.stages.frame import Models
 
     frame = _frame_without_a_face(0.4)
     landmarks = np.zeros((33, 5))

@@ -16,7 +16,8 @@ from relightcli.geometry.face_fit import fit_face  # noqa: E402
 from relightcli.geometry.face_model import FaceModel, rotation_matrix, transform, world_to_pixel  # noqa: E402
 from relightcli.nets.refine import FaceRefineNet  # noqa: E402
 from relightcli.pipeline import RelightOptions  # noqa: E402
-from relightcli.stages import Frame, Models, stage_face_refine  # noqa: E402
+from relightcli.stages.face import stage_face_refine  # noqa: E402
+from relightcli.stages.frame import Frame, Models  # noqa: E402
 
 
 @pytest.fixture

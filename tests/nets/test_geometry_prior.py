@@ -82,7 +82,7 @@ class _Models:
 
 def _frame(with_body):
     from relightcli.geometry.body_maps import BodyMaps
-    from relightcli.stages import Frame
+    from relightcli.stages.frame import Frame
 
     frame = Frame(image=np.zeros((32, 32, 3), np.float32), mask=None, env=None)
     frame.box = CropBox(x0=0, y0=0, size=32, resolution=32)
@@ -95,7 +95,7 @@ def _frame(with_body):
 
 def test_the_geometry_stage_uses_the_prior_net_only_with_a_fitted_body():
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import stage_geometry
+    from relightcli.stages.geometry import stage_geometry
 
     options = RelightOptions(resolution=32)
     for with_body, ships, used, why in ((True, True, "geometry_prior", "fitted bodies"),
@@ -112,7 +112,7 @@ def test_the_geometry_stage_uses_the_prior_net_only_with_a_fitted_body():
 
 def test_the_geometry_stage_bends_the_nets_normals_toward_the_outline_but_not_at_the_photos_edge():
     from relightcli.pipeline import RelightOptions
-    from relightcli.stages import stage_geometry
+    from relightcli.stages.geometry import stage_geometry
 
     # a person 40 px wide, cut by the photo's bottom edge (the crop reaches 32 px below it)
     frame = _frame(with_body=False)

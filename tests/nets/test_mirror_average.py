@@ -1,5 +1,5 @@
 """The geometry and de-lighting nets' maps averaged with their maps of the mirrored crop
-(relightcli.stages.MIRROR_AVERAGED): the mirror conventions of images, normals and lights."""
+(relightcli.stages.geometry.MIRROR_AVERAGED): the mirror conventions of images, normals and lights."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import numpy as np
 from relightcli.io.envmap import texel_directions
 from relightcli.io.images import read_image
 from relightcli.nets.geometry import GeometryMaps
-from relightcli.stages import Models, average_geometry, mirror, unit
+from relightcli.stages.frame import Models, unit
+from relightcli.stages.geometry import average_geometry, mirror
 
 TPOSE = Path(__file__).resolve().parents[1] / "data" / "tpose_render.png"
 

@@ -1,5 +1,5 @@
 """The adaptive Wiener filter on the integrator's own error estimate (render.denoise) and its
-use on the traced visibility (stages.traced)."""
+use on the traced visibility (stages.shading.traced)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from render_testing import floor_under_a_square
 
-from relightcli import stages
+from relightcli.stages import shading
 from relightcli.render.denoise import adaptive_wiener
 from relightcli.render.environment import EnvironmentLight
 
@@ -61,9 +61,9 @@ def test_the_filter_does_not_depend_on_the_values_scale(scale):
 
 
 def _floor_shading(env, spp, radius, monkeypatch, step=1, seed=3):
-    monkeypatch.setattr(stages, "SHADING_FILTER_RADIUS", radius)
+    monkeypatch.setattr(shading, "SHADING_FILTER_RADIUS", radius)
     scene, hits = floor_under_a_square(96)
-    values, _ = stages.traced(scene, hits, EnvironmentLight(env), spp, None, seed, 1, hits.mask, step)
+    values, _ = shading.traced(scene, hits, EnvironmentLight(env), spp, None, seed, 1, hits.mask, step)
     return values, hits.mask
 
 

@@ -1,4 +1,4 @@
-"""Shadows traced on a coarse pixel grid (stages.traced with step > 1, `--shadows half`): the
+"""Shadows traced on a coarse pixel grid (stages.shading.traced with step > 1, `--shadows half`): the
 visibility found on every step-th pixel, applied to every pixel's own unoccluded shading."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from relightcli.io.envmap import uv_to_direction
 from relightcli.render.camera import pixel_centres, render_pixel_geometry
 from relightcli.render.environment import EnvironmentLight
 from relightcli.render.scene import Scene
-from relightcli.stages import traced, upsample
+from relightcli.stages.shading import traced, upsample
 
 
 @pytest.mark.parametrize("step", [2, 3])

@@ -16,7 +16,7 @@ from relightcli.render.estimators import lifted_origins
 from relightcli.render.integrator import shade_environment
 from relightcli.render.inverse import light_transport
 from relightcli.render.scene import Scene
-from relightcli.stages import SHADOW_LIFT
+from relightcli.stages.shading import SHADOW_LIFT
 
 # A small sun low over the ball's right side, toward the camera (0.88, 0.27, 0.38): its
 # terminator crosses what the camera sees

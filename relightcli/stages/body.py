@@ -1,0 +1,93 @@
+"""The body: a MakeHuman body fitted under each person found, and the fitted bodies' prior maps
+(depth and normals) in the crop."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from relightcli import compose
+from relightcli.stages.crop import person_keypoints_in_crop
+from relightcli.stages.frame import Frame, Models
+
+
+def stage_body(frame: Frame, options, models: Models) -> None:
+    """The body model fitted to each person found (relightcli.geometry.body_fit): their 33
+    keypoints in the crop, BlazePose's visibility and world landmarks, the crop mask as the
+    silhouette. frame.bodies keeps the fits (vertices in the crop's world frame);
+    frame.notes["body"] per person the seconds, RMS keypoint residual (crop pixels), whether
+    the fit converged (or why not) and, if it did, whether the fitted body faces the camera
+    (`seen_from` front or behind: BlazePose takes some front-facing people for back views and
+    the other way round, README: the body)."""
+    import time
+
+    model = models.body_model()
+    silhouette = (frame.crop_mask > 0.5).astype(np.float32)
+    fits, people = [], []
+    for person in frame.people:
+        start = time.perf_counter()
+        fit = _fit_on_one_opencv_thread(model, person_keypoints_in_crop(person, frame.view.scale, frame.box),
+                                        person.pose.landmarks[:, 3], person.pose.world, silhouette)
+        fits.append(fit)
+        residual = float(fit.residual_px)
+        note = {"seconds": round(time.perf_counter() - start, 4),
+                "residual_px": round(residual, 3) if np.isfinite(residual) else None,
+                "converged": bool(fit.converged), "reason": fit.reason}
+        if fit.converged:
+            note["seen_from"] = "front" if fit.faces_camera else "behind"
+        people.append(note)
+    frame.bodies = fits
+    frame.notes["body"] = {"people": people}
+
+
+def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette):
+    """fit_body with OpenCV on one thread and without Intel IPP: the silhouette term's OpenCV
+    calls round differently with another thread count (1e-8 on the vertices), and with IPP
+    its precise distance transform differed from one process to the next on the same input
+    (two or three outcomes in six runs, 1e-8 on the fit's residual, a half-float step in a few
+    shading pixels); an item's outputs must not depend on either (tests/test_determinism.py)."""
+    from relightcli.geometry.body_fit import fit_body
+
+    threads, ipp = cv2.getNumThreads(), cv2.ipp.useIPP()
+    cv2.setNumThreads(1)
+    cv2.ipp.setUseIPP(False)
+    try:
+        return fit_body(model, keypoints, visibility, world, silhouette)
+    finally:
+        cv2.setNumThreads(threads)
+        cv2.ipp.setUseIPP(ipp)
+
+
+def stage_body_maps(frame: Frame, options, models: Models) -> None:
+    """The prior maps of every converged body fit (relightcli.geometry.body_maps): front and
+    back depth and normals at the person's pixels (crop mask > 0), traced once per photo in the
+    Embree scene of those bodies (kept for the ray tracer, closed by the pipeline); body_hits:
+    the front hits, which the ray tracer shades with the body's own normals. Nothing when no
+    fit converged (the note says why). The person's pixels only: at 512 on the skier example the
+    maps take 0.053 s of CPU (0.076 over the whole crop under the bodies' bounds; the ray
+    tracer's own front trace of the bodies, which they replace, took 0.038)."""
+    from relightcli.geometry.body_maps import bodies_scene, render_body_maps
+
+    fitted = [fit.vertices for fit in frame.bodies if fit.converged]
+    if not fitted:
+        frame.notes["body_maps"] = {"skipped": "no converged body fit"}
+        return
+    frame.body_scene = bodies_scene(fitted, models.body_model().triangles)
+    frame.body_maps = render_body_maps(frame.body_scene, options.resolution, where=frame.crop_mask > 0)
+    frame.body_hits = frame.body_maps.front
+    person = frame.crop_mask > 0.5
+    frame.notes["body_maps"] = {"bodies": len(fitted),
+                                "person_pixels_covered": round(float(frame.body_maps.mask[person].mean()), 4)
+                                if person.any() else 0.0}
+
+
+def body_shading_pixels(frame: Frame) -> np.ndarray:
+    """(R, R) bool: the crop pixels where the fitted bodies' shading is used: all but those of
+    a person whose fit did not converge (their pose segmentation), who keep the reconstruction's."""
+    usable = np.ones(frame.crop_mask.shape, bool)
+    height, width = frame.image.shape[:2]
+    for person, fit in zip(frame.people, frame.bodies):
+        if not fit.converged:
+            mask = frame.view.to_photo_size(person.pose.mask, height, width)
+            usable &= compose.crop_square(mask, frame.box) <= 0.5
+    return usable

@@ -1,0 +1,170 @@
+"""De-lighting: the input light and the albedo. The de-lighting net's guess, the input light
+solved again by inverse rendering on the meshes, and the photo divided by that light's shading."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from relightcli import compose
+from relightcli.compose import fill_uncovered
+from relightcli.layers import INPUT_SHADOW_GRID, SHADOW_STEP
+from relightcli.stages.body import body_shading_pixels
+from relightcli.stages.frame import Frame, Models, net_side, person_support, resample, unit
+from relightcli.stages.geometry import MIRROR_AVERAGED, mirror
+from relightcli.stages.shading import SHADOW_LIFT, body_weight, ensure_scenes, trace_shading
+
+
+def stage_delight(frame: Frame, options, models: Models) -> None:
+    """De-lighting: the input lighting (16x32) and an albedo. The net gives a light and an
+    albedo from [crop, normals]. `--albedo solve` (the default) solves the light again by
+    inverse rendering on the mesh (solve_input_light) and divides the crop by the ray-traced
+    shading of that light (cast shadows and occlusion leave the albedo with it); `--albedo
+    ratio` divides by the SH-9 irradiance of the net's light at the predicted normals; both
+    blend into the net's albedo where that shading is too dark to divide by
+    (compose.ratio_albedo), take the net's albedo level (one gain) and, on the outline, the
+    mean of its albedo and the nearest pixel's inside (compose.anchor_albedo). `--albedo net`
+    keeps the net's (the paper's).
+
+    Measured (`relight eval DATA [--albedo ratio]`, relit / albedo PSNR, ratio -> solve): test
+    scenes (data/eval512) 18.67 / 19.47 -> 18.82 / 19.74, true mask 19.04 / 19.84 -> 19.28 /
+    20.17; 150 validation scenes at 256, true mask, 17.70 / 18.27 -> 18.13 / 18.80; 20 at 512
+    16.77 / 16.14 -> 17.38 / 16.94; for ~0.45 s more a photo at 512. Dividing by the traced
+    shading of the *true* light scores 19.67 / 19.95 (validation, 512, no refinement): the
+    light's shape and level, not the division, is what is left. The input shading is traced
+    with the target's effort: capped at 8 samples per pixel it lost 0.04 / 0.09 dB on
+    validation for ~25% less time per image. Its rays are traced on a coarser grid instead
+    (input_shadow_step): at 512 every fourth pixel scored as every second (validation, true
+    mask, relit / albedo 17.800 / 17.190 -> 17.800 / 17.196; every eighth 17.794 / 17.196) with
+    a quarter of the rays (~55k instead of ~220k a photo); at 256 every fourth lost 0.007 /
+    0.004 dB on the 150 validation scenes, so 256 keeps every second."""
+    from relightcli.render.environment import EnvironmentLight
+    from relightcli.render.sh import project_sh, sh_irradiance_shading
+
+    net = models.get("delight")
+    side = net_side(net, options.resolution)
+    image, normal = resample(frame.crop, side), unit(resample(frame.normal, side))
+    result = net.predict(image, normal)
+    if "delight" in MIRROR_AVERAGED:
+        mirrored = net.predict(mirror(image), mirror(normal, (0,)))
+        result = replace(result, albedo=0.5 * (result.albedo + mirror(mirrored.albedo)),
+                         light=0.5 * (result.light + mirror(mirrored.light)))
+    albedo = resample(result.albedo, options.resolution)
+    frame.light = result.light
+    if options.albedo == "solve":
+        frame.light = solve_input_light(frame, albedo, options, models)
+        input_shading, note = trace_shading(frame, EnvironmentLight(frame.light), options,
+                                            input_shadow_step(options))
+        frame.notes["delight"]["input_shading"] = {key: note[key] for key in ("shadow_step", "rays", "rel_error")}
+    elif options.albedo == "ratio":
+        input_shading = sh_irradiance_shading(project_sh(result.light, 2), frame.normal)
+    if options.albedo != "net":
+        ratio = compose.ratio_albedo(frame.crop, input_shading, albedo, frame.crop_mask)
+        albedo = compose.anchor_albedo(ratio, albedo, frame.crop_mask)
+    # Outside the mask's 0.5 contour a pixel mixes in the background (the photo there is mostly
+    # not the person): it takes the albedo of the nearest pixel inside, so the soft edge, now
+    # straight, does not carry the background's colour into the relit person
+    inside = frame.crop_mask > 0.5
+    albedo = fill_uncovered(albedo, inside, frame.crop_mask > 0) if inside.any() else albedo
+    frame.albedo = albedo * person_support(frame)
+
+
+def input_shadow_step(options) -> int:
+    """The pixel step of the rays for the solved input light's shading: with `--shadows half`
+    a grid of about INPUT_SHADOW_GRID pixels across the crop (never finer than the target's
+    step), with `full` every pixel."""
+    step = SHADOW_STEP[options.shadows]
+    return max(step, options.resolution // INPUT_SHADOW_GRID) if options.shadows == "half" else step
+
+
+# The light solve samples about this many of the person's pixels (a regular grid), with this
+# many cosine-weighted visibility rays each. 2000 x 32 scored as 4000 x 64 on 150 validation
+# scenes at 256 (`--albedo solve --use-gt-mask`, relit / albedo 18.13 / 18.80 vs 18.12 / 18.80)
+# at a quarter of the rays: the de-lighting stage 0.85 -> 0.58 s at 512.
+SOLVE_PIXELS = 2000
+SOLVE_SAMPLES = 32
+# A pixel whose photo reaches this (linear, any channel) is clipped: left out of the solve
+SOLVE_CLIPPED = 0.95
+# Albedo below this (the net's, channel mean) says little about the light: left out
+SOLVE_DARK_ALBEDO = 0.03
+
+
+def solve_input_light(frame: Frame, net_albedo: np.ndarray, options, models: Models) -> np.ndarray:
+    """The input light by inverse rendering (relightcli.render.inverse): the light transport
+    of a grid of the person's pixels on the same surfaces the target shading is traced on
+    (mesh_transport), the net's albedo there as the albedo, the net's light as the prior.
+    Pixels on the 2-px outline, clipped or with a dark albedo are left out. Returns the
+    (16, 32, 3) light; frame.notes["delight"] gets the solve's residual and sizes."""
+    import time
+
+    from relightcli.render.inverse import solve_light
+
+    start = time.perf_counter()
+    ensure_scenes(frame, options, models)
+    pixels = solve_pixels(frame)
+    transport = mesh_transport(frame, pixels, options.seed)
+    photo = frame.crop.reshape(-1, 3)[pixels].astype(np.float64)
+    albedo = net_albedo.reshape(-1, 3)[pixels].astype(np.float64)
+    usable = (photo.max(axis=1) < SOLVE_CLIPPED) & (albedo.mean(axis=1) >= SOLVE_DARK_ALBEDO)
+    solve = solve_light(transport, photo, albedo, usable.astype(np.float64), frame.light)
+    light = grey_light(solve.light)
+    net_level, level = (float(np.mean(x @ compose.LUMINANCE)) for x in (frame.light, light))
+    frame.notes["delight"] = {
+        "light": "inverse rendering" if solve.pixels else "no usable pixel: the net's light, made grey",
+        "pixels": solve.pixels, "residual": [round(r, 4) for r in solve.residual],
+        "level_vs_net": round(level / net_level, 4) if net_level > 0 else None,
+        "seconds": round(time.perf_counter() - start, 4)}
+    return light
+
+
+def grey_light(light: np.ndarray) -> np.ndarray:
+    """The solved light (16, 32, 3) made colourless, its shape and luminance kept: each channel
+    scaled so that the three have the same mean over the texels. The solve divides the photo
+    by the net's albedo, which greys strongly coloured clothes, so their colour went into the
+    solved light and out of the albedo; a white-balanced photo's light is about grey. Measured
+    (`relight eval DATA --use-gt-mask`, relit / albedo dB): the solve's own colour against the
+    de-lighting net's light's (the earlier choice), 150 validation scenes at 256 18.05 / 18.73 ->
+    18.12 / 18.80, test (data/eval512) 18.06 / 18.61 -> 19.24 / 20.18; the net's colour against
+    grey, 150 at 256 (seed 7) 17.952 / 18.303 -> 17.973 / 18.335 (albedo better in 114), 20 at
+    512 17.976 / 17.213 -> 18.013 / 17.271 (16 of 20), 120 in the training split's poses 17.112
+    / 17.761 -> 17.110 / 17.760. The net's colour is further from the true input light's mean
+    colour than grey is (RMS of the log red/green and blue/green ratios' error 0.203 / 0.225 /
+    0.265 against 0.186 / 0.207 / 0.262 on those three sets). A light with a black channel is
+    kept."""
+    have = light.reshape(-1, 3).mean(axis=0)
+    if not (have > 0).all():
+        return light
+    gain = float(have @ compose.LUMINANCE) / have
+    return (light * gain).astype(np.float32)
+
+
+def solve_pixels(frame: Frame) -> np.ndarray:
+    """Flat crop indices of a regular grid (about SOLVE_PIXELS) over the person's pixels that
+    every traced surface covers, 2 px inside the outline (where the photo mixes in the
+    background)."""
+    inside = frame.crop_mask > 0.5
+    core = cv2.erode(inside.astype(np.uint8), np.ones((5, 5), np.uint8), borderValue=0) > 0
+    core &= frame.hits.mask
+    if frame.body_hits is not None:
+        core &= frame.body_hits.mask | ~body_shading_pixels(frame)
+    stride = max(1, int(np.sqrt(core.sum() / SOLVE_PIXELS)))
+    grid = np.zeros_like(core)
+    grid[::stride, ::stride] = True
+    return np.flatnonzero(core & grid)
+
+
+def mesh_transport(frame: Frame, pixels: np.ndarray, seed: int):
+    """The light transport (relightcli.render.inverse.Transport) of `pixels`, weighted over the
+    reconstruction and the fitted bodies as the target shading is (trace_shading)."""
+    from relightcli.render.inverse import light_transport
+
+    transport = light_transport(frame.scene, frame.hits, pixels, samples=SOLVE_SAMPLES, seed=seed, lift=SHADOW_LIFT)
+    if frame.body_scene is None:
+        return transport
+    body = light_transport(frame.body_scene, frame.body_hits, pixels, samples=SOLVE_SAMPLES, seed=seed,
+                           lift=SHADOW_LIFT)
+    weight = body_weight(frame).reshape(-1)[pixels][:, None]
+    transport.matrix = ((1.0 - weight) * transport.matrix + weight * body.matrix).astype(np.float32)
+    return transport
