@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import time
 import warnings
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -134,6 +135,7 @@ class Relighter:
         from relightcli.batch import ItemReport
         from relightcli.pipeline import run_stages
 
+        start = time.perf_counter()
         options = _options(self.options, options)
         report = ItemReport(str(image) if _is_path(image) else "image array")
         with warnings.catch_warnings(record=True) as caught:
@@ -141,6 +143,7 @@ class Relighter:
             photo, person, mask_source, options = _read_photo(image, mask, options)
             env = _environment(hdr, options)
             frame, plan = run_stages(photo.rgb, person, env, options, report, self.models, mask_source=mask_source)
+        report.seconds["total"] = round(time.perf_counter() - start, 4)
         report.details["plan"] = plan.as_dict()
         report.details["stages"] = frame.notes
         for warning in caught:
@@ -150,11 +153,9 @@ class Relighter:
         return Result(report.as_dict(), frame, options, Path(image) if _is_path(image) else None)
 
 
-def relight(image, hdr, **options) -> Result:
+def relight(image, hdr, *, mask=None, threads: int | None = None, **options) -> Result:
     """Relight one photo (see Relighter.relight; `threads` and the options as Relighter's).
     For many photos, a Relighter loads the networks once instead of once per call."""
-    threads = options.pop("threads", None)
-    mask = options.pop("mask", None)
     return Relighter(threads=threads).relight(image, hdr, mask=mask, **options)
 
 

@@ -91,7 +91,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser) -> None:
     low, high = RESOLUTION_RANGE
     parser.add_argument("--resolution", type=int_in_range(low, high), default=DEFAULT_RESOLUTION, metavar="PX",
                         help=f"working resolution of the square person crop, {low}..{high} (default "
-                             f"{DEFAULT_RESOLUTION}, the paper's; 256 is twice as fast). Below {low} "
+                             f"{DEFAULT_RESOLUTION}, the paper's; 256 takes ~0.8x the time). Below {low} "
                              f"no body is left to reconstruct; above {high} the networks, trained at "
                              "512, add no detail while time and memory grow with its square")
 

@@ -18,7 +18,7 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     frame.notes["body"] per person the seconds, RMS keypoint residual (crop pixels), whether
     the fit converged (or why not) and, if it did, whether the fitted body faces the camera
     (`seen_from` front or behind: BlazePose takes some front-facing people for back views and
-    the other way round, README: the body)."""
+    the other way round: docs/RESULTS.md, The body and the face)."""
     import time
 
     model = models.body_model()
