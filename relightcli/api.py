@@ -86,7 +86,8 @@ class Result:
         from relightcli.batch import ItemReport
         from relightcli.pipeline import write_layer
 
-        source = self.source or Path("image.png")
+        # an array's files are named 'image'; its stand-in path is no file any output can be
+        source = self.source or Path("/dev/null/image.png")
         read_only = [self.options.mask_path] if self.options.mask_path else []
         (item,) = batch.plan_items([(source, Path(source.stem))], out, self.options.outputs, read_only=read_only)
         existing = batch.existing_outputs(item)

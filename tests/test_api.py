@@ -95,13 +95,15 @@ def test_arrays_in_give_the_results_of_the_files(relighter):
     assert from_rgba.report["stages"]["mask"]["source"] == "alpha channel"
 
 
-def test_an_array_result_saves_under_the_name_image(relighter, tmp_path):
+def test_an_array_result_saves_under_the_name_image(relighter, tmp_path, monkeypatch):
     env = np.full((8, 16, 3), 0.5, np.float32)
     photo = np.dstack([np.full((64, 48, 3), 0.3, np.float32), np.zeros((64, 48), np.float32)])
     photo[10:60, 12:36, 3] = 1.0
     result = relighter.relight(photo, env, outputs=("relit", "albedo"), method="sh9")
     written = result.save(tmp_path / "out")
     assert {p.name for p in written.values()} == {"image.png", "image_albedo.png"}
+    monkeypatch.chdir(tmp_path)
+    assert set(result.save("image.png").values()) == {Path("image.png"), Path("image_albedo.png")}
 
 
 def test_save_refuses_an_existing_file_when_asked_and_never_the_photo(relighter, tmp_path):
