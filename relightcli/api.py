@@ -112,17 +112,12 @@ class Relighter:
     several threads at once: one Relighter per thread or process."""
 
     def __init__(self, *, threads: int | None = None, **options):
-        import cv2
-
         from relightcli.cli import default_threads
-        from relightcli.io.images import set_io_threads
-        from relightcli.stages import Models
+        from relightcli.pipeline import load_models
 
         threads = _checked_threads(threads, default_threads())
         self.options = _options(RelightOptions(threads=threads), options)
-        cv2.setNumThreads(threads)
-        set_io_threads(threads)
-        self.models = Models(threads)
+        self.models = load_models(threads)
 
     def relight(self, image, hdr, *, mask=None, **options) -> Result:
         """Relight one photo under one environment map.
@@ -168,17 +163,15 @@ def _read_photo(image, mask, options: RelightOptions):
     """(the photo's Image, its mask or None, the mask's source note, the options with the mask
     file) from a path or an array and a mask path, array or None."""
     from relightcli.io.images import image_from_array
-    from relightcli.pipeline import check_usable_size, input_mask, read_input
+    from relightcli.pipeline import photo_and_mask, read_input
 
     if _is_path(mask):
         options = replace(options, mask_path=Path(mask))
     if _is_path(image):
         photo, person, source = read_input(Path(image), None, options)
     else:
-        photo = image_from_array(image, max_pixels=options.max_pixels)
-        check_usable_size(photo, photo.path)
-        person = input_mask(photo, options.mask_path, options.max_pixels, photo.path)
-        source = f"--mask {options.mask_path}" if options.mask_path else None
+        array = image_from_array(image, max_pixels=options.max_pixels)
+        photo, person, source = photo_and_mask(array, array.path, None, options)
     if mask is not None and not _is_path(mask):
         person, source = _mask_array(mask, photo.rgb.shape[:2]), "the mask array"
     return photo, person, source, options

@@ -154,20 +154,26 @@ class RelightWorker:
         self.models = None
 
     def setup(self) -> None:
-        import cv2
-
-        from relightcli.io.images import set_io_threads
-        from relightcli.stages.frame import Models
-
-        cv2.setNumThreads(self.options.threads)
-        set_io_threads(self.options.threads)
-        self.models = Models(self.options.threads)
+        self.models = load_models(self.options.threads)
 
     def __call__(self, item: Item) -> ItemReport:
         return relight_item(item, self.env, self.options, self.models)
 
     def __getstate__(self):
         return {"env": self.env, "options": self.options, "models": None}  # sessions stay per process
+
+
+def load_models(threads: int):
+    """OpenCV's and OpenImageIO's threads set to `threads`, and the network sessions (loaded on
+    first use) that every item of a batch shares."""
+    import cv2
+
+    from relightcli.io.images import set_io_threads
+    from relightcli.stages.frame import Models
+
+    cv2.setNumThreads(threads)
+    set_io_threads(threads)
+    return Models(threads)
 
 
 def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemReport:
@@ -211,7 +217,11 @@ def read_input(path: Path, own_mask: Path | None, options: RelightOptions):
     came from) for the photo at `path`; `own_mask`: its own NAME_mask file (batch.pair_masks)."""
     from relightcli.io.images import read_image
 
-    image = read_image(path, max_pixels=options.max_pixels)
+    return photo_and_mask(read_image(path, max_pixels=options.max_pixels), path, own_mask, options)
+
+
+def photo_and_mask(image, path, own_mask: Path | None, options: RelightOptions):
+    """read_input for a decoded Image (a file's, or an array's: relightcli.api)."""
     check_usable_size(image, path)
     mask_path, mask_source = _mask_file(options.mask_path, own_mask)
     return image, input_mask(image, mask_path, options.max_pixels, path), mask_source
