@@ -41,6 +41,11 @@ RQMC_GROUPS = 4
 SAMPLERS = ("sobol", "independent")
 # Rays per vectorised round, shared by the processes (bounds memory: ~300 bytes per ray in flight)
 ROUND_RAYS = 1 << 19
+# A render forks its workers (parallel.ForkedPasses) only when it may take this many samples
+# (pixels x spp, the cap when adaptive): forking and ending them costs ~0.05-0.1 s, more than
+# a smaller render gains. The pipeline's renders at 512 (2k-32k pixels, adaptive, cap 32) took
+# as long or longer on 2 workers as on 1; 64 spp on the bench's 512 x 512 body scaled 1.6-1.9x
+FORK_MIN_SAMPLES = 2_000_000
 # Share of the energy in the brightest 0.1% of texels from which the sun is sampled apart
 SUN_SPLIT_FRACTION = 0.1
 # Pixels darker than this share of the median count as converged at this absolute error
@@ -375,7 +380,7 @@ def _tabulated(plan: LightingPlan, shape: tuple, seed: int) -> LightingPlan:
 
 def _sample_rounds(run, state, spp, target_error, time_budget, min_spp, start, workers):
     """Run passes in rounds until every pixel is done, spp is reached or time is up."""
-    if workers > 1:
+    if workers > 1 and run.pixel_count * spp >= FORK_MIN_SAMPLES:
         with ForkedPasses(run, workers) as pool:
             _rounds(pool.statistics, run, state, spp, target_error, time_budget, min_spp, start)
     else:

@@ -3,6 +3,7 @@ solved again by inverse rendering on the meshes, and the photo divided by that l
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import cv2
@@ -55,13 +56,18 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     frame.light = result.light
     if options.albedo == "solve":
         frame.light = solve_input_light(frame, albedo, options, models)
+        start = time.perf_counter()
         input_shading, note = trace_shading(frame, EnvironmentLight(frame.light), options,
                                             input_shadow_step(options))
-        frame.notes["delight"]["input_shading"] = {key: note[key] for key in ("shadow_step", "rays", "rel_error")}
+        frame.notes["delight"]["input_shading"] = {**{key: note[key] for key in ("shadow_step", "rays", "rel_error")},
+                                                   "seconds": round(time.perf_counter() - start, 4)}
     elif options.albedo == "ratio":
         input_shading = sh_irradiance_shading(project_sh(result.light, 2), frame.normal)
     if options.albedo != "net":
+        frame.input_shading = input_shading
         ratio = compose.ratio_albedo(frame.crop, input_shading, albedo, frame.crop_mask)
+        frame.notes.setdefault("delight", {})["albedo_level"] = albedo_level_note(
+            compose.albedo_gain(ratio, albedo, frame.crop_mask))
         albedo = compose.anchor_albedo(ratio, albedo, frame.crop_mask)
     # Outside the mask's 0.5 contour a pixel mixes in the background (the photo there is mostly
     # not the person): it takes the albedo of the nearest pixel inside, so the soft edge, now
@@ -69,6 +75,22 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     inside = frame.crop_mask > 0.5
     albedo = fill_uncovered(albedo, inside, frame.crop_mask > 0) if inside.any() else albedo
     frame.albedo = albedo * person_support(frame)
+
+
+# The albedo level's error, RMS over the 20 validation scenes at 512 (true mask, `python
+# bench/light_solve.py data/evalval512 data/factory512val --split val --use-gt-mask`): log2 of
+# the true albedo's median luminance over the person over ours
+ALBEDO_LEVEL_RMS_STOPS = 0.67
+
+
+def albedo_level_note(gain: float) -> dict:
+    """The report's word on the albedo's level: where it came from, how far the input light's
+    own level was from it (stops, > 0: the photo over the light's shading was brighter than the
+    net's albedo) and the error to expect (a photo cannot tell a dark outfit in bright light
+    from a light one in dim light; docs/RESULTS.md, "The input light and the albedo's level")."""
+    return {"source": "the de-lighting net's albedo (its mean over the person)",
+            "light_vs_net_stops": round(float(-np.log2(gain)), 3) if gain > 0 else None,
+            "expected_error_stops": ALBEDO_LEVEL_RMS_STOPS}
 
 
 def input_shadow_step(options) -> int:
@@ -97,12 +119,10 @@ def solve_input_light(frame: Frame, net_albedo: np.ndarray, options, models: Mod
     (mesh_transport), the net's albedo there as the albedo, the net's light as the prior.
     Pixels on the 2-px outline, clipped or with a dark albedo are left out. Returns the
     (16, 32, 3) light; frame.notes["delight"] gets the solve's residual and sizes."""
-    import time
-
     from relightcli.render.inverse import solve_light
 
+    ensure_scenes(frame, options, models)  # built here, used by the target's shading too
     start = time.perf_counter()
-    ensure_scenes(frame, options, models)
     pixels = solve_pixels(frame)
     transport = mesh_transport(frame, pixels, options.seed)
     photo = frame.crop.reshape(-1, 3)[pixels].astype(np.float64)

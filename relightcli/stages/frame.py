@@ -30,6 +30,7 @@ class Frame:
     ao_net: np.ndarray | None = None  # (R, R) the AO net's map: the refinement's input
     albedo: np.ndarray | None = None  # (R, R, 3)
     light: np.ndarray | None = None  # (16, 32, 3) estimated input lighting
+    input_shading: np.ndarray | None = None  # (R, R, 3) what the photo was divided by (--albedo solve, ratio)
     mesh: object | None = None  # trimesh.Trimesh in the crop camera frame
     scene: object | None = None  # relightcli.render.scene.Scene of the mesh (closed by the pipeline)
     hits: object | None = None  # relightcli.render.camera.PixelGeometry: what each crop pixel sees

@@ -259,13 +259,46 @@ def test_two_workers_give_the_same_image_as_one(target_error, round_rays, monkey
 
     if round_rays is not None:
         monkeypatch.setattr(integrator, "ROUND_RAYS", round_rays)
+    monkeypatch.setattr(integrator, "FORK_MIN_SAMPLES", 0)  # this small render forks too
+    forks = _count_forks(monkeypatch)
     scene, geometry = _body_like_scene()
     light = EnvironmentLight(_sun_and_sky_map())
     one = shade_environment(scene, geometry, light, spp=32, seed=4, target_error=target_error)
     two = shade_environment(scene, geometry, light, spp=32, seed=4, target_error=target_error, workers=2)
+    assert forks == [2]
     np.testing.assert_array_equal(two.mean, one.mean)
     np.testing.assert_array_equal(two.stderr, one.stderr)
     assert two.rays == one.rays
+
+
+def _count_forks(monkeypatch) -> list:
+    """The worker counts of the ForkedPasses the integrator opens from now on."""
+    import relightcli.render.integrator as integrator
+
+    forks = []
+
+    class Counted(integrator.ForkedPasses):
+        def __init__(self, run, workers):
+            forks.append(workers)
+            super().__init__(run, workers)
+
+    monkeypatch.setattr(integrator, "ForkedPasses", Counted)
+    return forks
+
+
+def test_a_render_forks_only_with_enough_samples_to_gain(monkeypatch):
+    import relightcli.render.integrator as integrator
+
+    forks = _count_forks(monkeypatch)
+    scene, geometry = _body_like_scene()
+    light = EnvironmentLight(_sun_and_sky_map())
+    samples = int(geometry.mask.sum()) * 16
+    monkeypatch.setattr(integrator, "FORK_MIN_SAMPLES", samples + 1)
+    shade_environment(scene, geometry, light, spp=16, seed=4, workers=2)
+    assert forks == []
+    monkeypatch.setattr(integrator, "FORK_MIN_SAMPLES", samples)
+    shade_environment(scene, geometry, light, spp=16, seed=4, workers=2)
+    assert forks == [2]
 
 
 def _stop_dispositions():
