@@ -140,7 +140,7 @@ def substituted(source: str, light: np.ndarray):
             def true_light(frame, net_albedo, options, models):
                 delight.ensure_scenes(frame, options, models)
                 frame.notes["delight"] = {"light": "the true input light (oracle)"}
-                return light.astype(np.float32)
+                return light.astype(np.float32), light.astype(np.float32)
             delight.solve_input_light = true_light
         if source.endswith("own-level"):
             compose.anchor_albedo = own_level_anchor(saved[1])

@@ -728,6 +728,29 @@ def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one(
     assert frame.albedo.shape == (32, 32, 3)
 
 
+def test_the_light_layer_takes_the_prior_where_no_pixel_sees_the_light():
+    from types import SimpleNamespace
+
+    from relightcli.stages.delight import LAYER_SEEN_SHARE, light_layer
+
+    rng = np.random.default_rng(3)
+    solved = rng.uniform(0.5, 2.0, (16, 32, 3)).astype(np.float32)
+    prior = np.full((16, 32, 3), 0.1, np.float32)
+    seen = np.zeros(16 * 32, np.float32)
+    seen[:256] = 1.0  # the upper half seen fully
+    seen[256:264] = 0.5 * LAYER_SEEN_SHARE  # half-way to seen
+    matrix = np.tile(seen / 3, (3, 1))  # three pixels share the transport (a negative entry: occlusion)
+    matrix[0, 300] = -0.5
+    got = light_layer(solved, prior, SimpleNamespace(matrix=matrix))
+    np.testing.assert_array_equal(got[:8], solved[:8])
+    # the prior at the solved light's level where seen (weighted as seen)
+    level = (solved[:8].sum() + 0.5 * solved[8, :8].sum()) / (prior[:8].sum() + 0.5 * prior[8, :8].sum())
+    np.testing.assert_allclose(got[9:], prior[9:] * level, rtol=1e-5)
+    np.testing.assert_allclose(got[8, :8], 0.5 * solved[8, :8] + 0.5 * prior[8, :8] * level, rtol=1e-5)
+    # Nothing seen (no pixel): the solved light as it is
+    np.testing.assert_array_equal(light_layer(solved, prior, SimpleNamespace(matrix=np.zeros_like(matrix))), solved)
+
+
 def test_the_solved_light_is_made_grey_and_keeps_its_own_shape_and_luminance():
     from relightcli.compose import LUMINANCE
     from relightcli.stages.delight import grey_light
