@@ -314,21 +314,67 @@ def composite(relit: np.ndarray, mask: np.ndarray, background: str, *, photo: np
 
 def composite_crop(relit: np.ndarray, box: CropBox, mask: np.ndarray, background: str, *,
                    photo: np.ndarray | None = None, env_view: np.ndarray | None = None, scale: float = 1.0,
-                   out: np.ndarray | None = None, matte: tuple[float, float] | None = None):
+                   out: np.ndarray | None = None, matte: tuple[float, float] | None = None,
+                   detail: PhotoDetail | None = None):
     """composite() of the (R, R, 3) relit crop pasted back into the frame, relit and env_view
     times `scale` (display exposure), a band of rows at a time: the (H, W, 3) result is the
     only frame-sized array it makes, none with `out` (where to write it; it may be photo or
     env_view, each band is read before it is written). mask, photo, env_view: full frame, as
-    composite(); matte as composite()'s, applied a band at a time."""
+    composite(); matte as composite()'s, applied a band at a time; detail: the photo's detail
+    the crop lost, put back into the relit person (PhotoDetail)."""
     height, width = mask.shape
     rgb = np.empty((height, width, 3), np.float32) if out is None else out
     for rows, person in pasted_bands(relit, box, height, width):
+        if detail is not None:
+            detail.apply(person, rows)
         rgb[rows], _ = composite(
             person * np.float32(scale), mask[rows], background, photo=None if photo is None else photo[rows],
             env_view=None if env_view is None else env_view[rows] * np.float32(scale), matte=matte)
     if background != "transparent":
         return rgb, None
     return rgb, mask.astype(np.float32, copy=False) if matte is None else sharpened(mask, matte)
+
+
+# The photo's detail factor: DETAIL_FLOOR (linear luminance) is added to both sides of the
+# ratio, which is held within 1 / DETAIL_RANGE .. DETAIL_RANGE
+DETAIL_FLOOR = 1e-3
+DETAIL_RANGE = 4.0
+
+
+class PhotoDetail:
+    """What the working crop lost of the photo's detail, to put back into the full-frame layers
+    that carry it (relit, albedo): where the crop is coarser than the photo (box.scale > 1), the
+    photo's luminance over its crop's pasted back (the detail finer than a crop pixel; shading
+    and light are smooth at that scale, so relit = albedo x shading takes it through the albedo
+    alone), inside the person's mask eroded by a crop pixel (where the crop's pixels did not mix
+    in the background). One factor for the three channels: the photo's colour stays the crop's.
+    photo: (H, W, 3) linear full frame; crop: its (R, R, 3) working crop; mask: (H, W)."""
+
+    def __init__(self, photo: np.ndarray, crop: np.ndarray, box: CropBox, mask: np.ndarray):
+        self.photo, self.crop, self.box = photo, crop, box
+        self.active = box.scale > 1.0
+        if self.active:
+            side = 2 * int(np.ceil(box.scale)) + 1
+            self.inside = cv2.erode((mask > 0.5).astype(np.uint8), np.ones((side, side), np.uint8),
+                                    borderValue=0).astype(bool)
+
+    def factor(self, rows: slice) -> np.ndarray | None:
+        """(h, W, 1) float32 detail factor of the full frame's `rows` (1 outside the person),
+        None when the crop is as fine as the photo."""
+        if not self.active:
+            return None
+        height, width = self.photo.shape[:2]
+        smooth = paste_back(self.crop, self.box, height, width, rows) @ LUMINANCE
+        sharp = self.photo[rows] @ LUMINANCE
+        ratio = np.clip((sharp + DETAIL_FLOOR) / (smooth + DETAIL_FLOOR), 1.0 / DETAIL_RANGE, DETAIL_RANGE)
+        return np.where(self.inside[rows], ratio, 1.0).astype(np.float32)[..., None]
+
+    def apply(self, layer: np.ndarray, rows: slice) -> np.ndarray:
+        """A full-frame band (h, W, 3) of a layer times the detail factor, in place."""
+        factor = self.factor(rows)
+        if factor is not None:
+            layer *= factor
+        return layer
 
 
 def to_display(image: np.ndarray, scale: float = 1.0) -> np.ndarray:

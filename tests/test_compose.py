@@ -328,3 +328,51 @@ def test_replace_in_box_changes_only_the_box_even_where_it_leaves_the_photo():
     np.testing.assert_array_equal(full[20:40, 0:20], 1.0)
     np.testing.assert_array_equal(full[:20], 0.25)
     np.testing.assert_array_equal(full[:, 20:], 0.25)
+
+
+def _textured_photo(side=512, seed=0):
+    """A smooth gradient times a fine random texture (finer than a 128-px crop's pixels), and a
+    disc mask (the person)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[:side, :side] / side
+    smooth = (0.2 + 0.5 * x)[..., None] * np.array([0.9, 0.7, 0.5], np.float32)
+    texture = rng.uniform(0.5, 1.5, (side, side, 1))
+    mask = (((x - 0.5) ** 2 + (y - 0.5) ** 2) < 0.16).astype(np.float32)
+    return (smooth * texture).astype(np.float32), mask
+
+
+def test_the_photos_own_detail_comes_back_where_the_crop_was_coarser():
+    from relightcli.compose import LUMINANCE, CropBox, PhotoDetail, composite_crop, crop_square
+
+    photo, mask = _textured_photo()
+    box = CropBox(0, 0, 512, 128)  # 4 photo pixels per crop pixel
+    crop = crop_square(photo, box)
+    relit = crop * np.float32(0.5)  # a relight that halves the light everywhere
+    sharp, _ = composite_crop(relit, box, mask, "#000000", detail=PhotoDetail(photo, crop, box, mask))
+    blurred, _ = composite_crop(relit, box, mask, "#000000")
+    inside = np.zeros_like(mask, bool)
+    inside[200:312, 200:312] = True  # well inside the disc
+    lum = lambda image: image[inside] @ LUMINANCE  # noqa: E731
+    want = 0.5 * lum(photo)
+    assert np.corrcoef(lum(sharp), want)[0, 1] > 0.97  # the texture, pixel for pixel
+    assert np.corrcoef(lum(blurred), want)[0, 1] < 0.5  # what the enlarged crop alone gave
+    np.testing.assert_allclose(lum(sharp).mean(), want.mean(), rtol=0.02)  # the level kept
+    # outside the person nothing changes
+    outside = mask < 0.5
+    np.testing.assert_array_equal(sharp[outside], blurred[outside])
+
+
+def test_the_photos_detail_is_left_out_where_the_crop_is_as_fine_and_bounded_elsewhere():
+    from relightcli.compose import DETAIL_RANGE, CropBox, PhotoDetail, crop_square
+
+    photo, mask = _textured_photo(128)
+    fine = CropBox(0, 0, 128, 256)
+    assert PhotoDetail(photo, crop_square(photo, fine), fine, mask).factor(slice(0, 128)) is None
+    # a black photo with one bright pixel: finite, within the range, 1 outside the person
+    photo = np.zeros_like(photo)
+    photo[64, 64] = 50.0
+    coarse = CropBox(0, 0, 128, 32)
+    factor = PhotoDetail(photo, crop_square(photo, coarse), coarse, mask).factor(slice(0, 128))
+    assert np.isfinite(factor).all() and factor.max() <= DETAIL_RANGE and factor.min() >= 1.0 / DETAIL_RANGE
+    assert factor[64, 64, 0] == DETAIL_RANGE
+    assert (factor[mask < 0.5] == 1.0).all()

@@ -35,7 +35,12 @@ def layer_image(name: str, frame: Frame, options, hdr: bool = False):
     if name == "mask":
         return frame.mask, None, False
     if name in ("albedo", "shading"):  # straight layers, over black at the photo's mask (alpha)
-        return over_black(full(getattr(frame, name)), frame.mask), None, True
+        layer = full(getattr(frame, name))
+        if name == "albedo":  # the photo's own detail, which the crop lost (the shading is smooth)
+            detail = photo_detail(frame)
+            for rows in row_bands(height):
+                detail.apply(layer[rows], rows)
+        return over_black(layer, frame.mask), None, True
     if name == "normal":
         return full((frame.normal + 1.0) * 0.5 * (frame.crop_mask[..., None] > 0.5)), None, False
     if name == "ao":
@@ -45,6 +50,12 @@ def layer_image(name: str, frame: Frame, options, hdr: bool = False):
     if name in ("body_normal", "body_depth"):
         return full(body_layer(name, frame.body_maps, options.resolution)), None, False
     raise ValueError(f"{name} is not an image layer")
+
+
+def photo_detail(frame: Frame) -> compose.PhotoDetail:
+    """The photo's detail the working crop lost (compose.PhotoDetail), for the relit and albedo
+    layers."""
+    return compose.PhotoDetail(frame.image, frame.crop, frame.box, frame.mask)
 
 
 def body_layer(name: str, maps, resolution: int) -> np.ndarray:
@@ -114,7 +125,7 @@ def relit_image(frame: Frame, options, hdr: bool):
     # The environment view is made for this output only: composite over it in place.
     rgb, alpha = compose.composite_crop(frame.relit_crop, frame.box, mask, options.background,
                                         photo=frame.image, env_view=env_view, scale=scale, out=env_view,
-                                        matte=matte)
+                                        matte=matte, detail=photo_detail(frame))
     frame.notes["relit"] = {"display_exposure": scale}
     if matte is not None:
         frame.notes["relit"]["matte"] = f"the predicted mask sharpened from {matte[0]}..{matte[1]} to 0..1"
