@@ -10,7 +10,8 @@ high-pass log luminance (log minus its Gaussian blur, sigma DETAIL_SIGMA px) of 
 photo's resolution. A relight changes the shading, which is smooth at that scale, so the
 correlation is near 1 when the photo's detail survives and falls as it is blurred away (a crop
 enlarged back). Prints a row per photo (its size, the working crop's scale, the detail, the
-seconds) and writes --out.
+seconds) and writes --out. `--speed`: instead, the time the detail adds to a 12 MP photo's
+relit composite (a 2500 px person box in a 4000 x 3000 frame, 512 crop; best of 5).
 """
 
 from __future__ import annotations
@@ -69,12 +70,37 @@ def measure(photo: Path, hdr: str, work: Path) -> dict:
             "seconds": round(seconds, 2), "item_seconds": report["seconds"].get("total")}
 
 
+def speed() -> None:
+    from relightcli.compose import CropBox, PhotoDetail, composite_crop, crop_square
+
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.0, 1.0, (3000, 4000, 3)).astype(np.float32)
+    mask = np.zeros((3000, 4000), np.float32)
+    mask[400:2900, 1000:3000] = 1.0
+    box = CropBox(750, 400, 2500, 512)
+    crop = crop_square(photo, box)
+    times = {"without": [], "with": []}
+    for _ in range(5):
+        for name in times:
+            detail = PhotoDetail(photo, crop, box, mask) if name == "with" else None
+            start = time.perf_counter()
+            composite_crop(crop * np.float32(0.5), box, mask, "keep", photo=photo, detail=detail)
+            times[name].append(time.perf_counter() - start)
+    best = {name: min(t) for name, t in times.items()}
+    print(f"12 MP relit composite: {best['without']:.3f} s, with the detail {best['with']:.3f} s "
+          f"(+{best['with'] - best['without']:.3f})")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folders", nargs="+")
+    parser.add_argument("folders", nargs="*")
+    parser.add_argument("--speed", action="store_true")
     parser.add_argument("--hdr", default=str(ROOT / "examples" / "noon_grass.hdr"))
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if args.speed:
+        speed()
+        return 0
     rows = []
     with tempfile.TemporaryDirectory() as work:
         for photo in photos(args.folders):

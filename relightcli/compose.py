@@ -351,7 +351,8 @@ class PhotoDetail:
     photo: (H, W, 3) linear full frame; crop: its (R, R, 3) working crop; mask: (H, W)."""
 
     def __init__(self, photo: np.ndarray, crop: np.ndarray, box: CropBox, mask: np.ndarray):
-        self.photo, self.crop, self.box = photo, crop, box
+        self.photo, self.box = photo, box
+        self.crop_luminance = np.ascontiguousarray(crop @ LUMINANCE, dtype=np.float32)
         self.active = box.scale > 1.0
         if self.active:
             side = 2 * int(np.ceil(box.scale)) + 1
@@ -364,7 +365,7 @@ class PhotoDetail:
         if not self.active:
             return None
         height, width = self.photo.shape[:2]
-        smooth = paste_back(self.crop, self.box, height, width, rows) @ LUMINANCE
+        smooth = paste_back(self.crop_luminance, self.box, height, width, rows)
         sharp = self.photo[rows] @ LUMINANCE
         ratio = np.clip((sharp + DETAIL_FLOOR) / (smooth + DETAIL_FLOOR), 1.0 / DETAIL_RANGE, DETAIL_RANGE)
         return np.where(self.inside[rows], ratio, 1.0).astype(np.float32)[..., None]
