@@ -352,9 +352,9 @@ class PhotoDetail:
 
     def __init__(self, photo: np.ndarray, crop: np.ndarray, box: CropBox, mask: np.ndarray):
         self.photo, self.box = photo, box
-        self.crop_luminance = np.ascontiguousarray(crop @ LUMINANCE, dtype=np.float32)
         self.active = box.scale > 1.0
         if self.active:
+            self.crop_luminance = np.ascontiguousarray(crop @ LUMINANCE, dtype=np.float32)
             side = 2 * int(np.ceil(box.scale)) + 1
             self.inside = cv2.erode((mask > 0.5).astype(np.uint8), np.ones((side, side), np.uint8),
                                     borderValue=0).astype(bool)
