@@ -82,9 +82,14 @@ def load_scene(folder: str | Path) -> Scene:
     normal = read_image(folder / "gt_normal.exr").rgb if (folder / "gt_normal.exr").is_file() else None
     scene = Scene(folder.name, folder, mask, read_image(folder / "gt_albedo.exr").rgb,
                   read_image(folder / "gt_shading.exr").rgb, read_image(folder / "gt_relit.exr").rgb, normal)
-    for name in ("albedo", "shading", "relit"):
-        if getattr(scene, name).shape[:2] != mask.shape:
+    for name in ("albedo", "shading", "relit", "normal"):
+        truth = getattr(scene, name)
+        if truth is None:
+            continue
+        if truth.shape[:2] != mask.shape:
             raise InputError(f"gt_{name}.exr is not the size of gt_mask.png", path=folder, fix="regenerate the scene")
+        if not np.isfinite(truth).all():
+            raise InputError(f"gt_{name}.exr holds NaN or Inf values", path=folder, fix="regenerate the scene")
     return scene
 
 
@@ -159,6 +164,18 @@ def evaluate(scene_folders: list[Path], predict: Callable[[Scene], dict], method
         result["normal"] = {"deg": float(np.mean(angles)), "scenes": len(angles)}
     result["per_scene"] = per_scene
     return result
+
+
+def finite_json(value):
+    """`value` (dicts, lists, numbers) with every NaN or infinite float made None: what
+    json.dumps writes is then JSON (it writes NaN, which JSON has not)."""
+    if isinstance(value, dict):
+        return {key: finite_json(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(item) for item in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
 
 
 def format_table(result: dict) -> str:

@@ -274,6 +274,10 @@ def predict_scene(scene, options: RelightOptions, *, use_gt_mask: bool = False, 
 
     image = read_image(scene.input_path, max_pixels=options.max_pixels)
     check_usable_size(image, scene.input_path)
+    if image.rgb.shape[:2] != scene.mask.shape:
+        raise InputError(f"the input is {image.rgb.shape[1]}x{image.rgb.shape[0]}, its truth (gt_mask.png) "
+                         f"{scene.mask.shape[1]}x{scene.mask.shape[0]}", path=scene.input_path,
+                         fix="regenerate the scene: the input and the truth must be the same size")
     env = load_envmap(scene.target_path)
     mask = scene.mask if use_gt_mask else None
     frame, _ = run_stages(image.rgb, mask, env, options, ItemReport(str(scene.folder)), models)

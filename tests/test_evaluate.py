@@ -178,3 +178,40 @@ def test_eval_scores_the_layers_the_product_writes(tmp_path, capsys):
         written = read_image(report["outputs"][layer]).rgb
         np.testing.assert_allclose(predicted[layer], written, rtol=2e-3, atol=1e-6, err_msg=layer)
         assert written[load_scene(folder).mask == 0].max() == 0  # black off the person
+
+
+def test_a_malformed_scene_is_skipped_with_its_reason_and_the_json_stays_json(tmp_path, capsys):
+    """A true normal map of the wrong size, NaN in a truth file, an input of another size than
+    its truth: each scene fails with the file named, the good one is scored, and --json prints
+    strict JSON (no NaN), the means over the good scene alone."""
+    import json
+
+    from relightcli.cli import main
+
+    make_scene(tmp_path / "a_good", seed=1)
+    normal = make_scene(tmp_path / "b_normal", seed=2)
+    write_image(normal / "gt_normal.exr", np.zeros((10, 10, 3), np.float32), half=False)
+    nan = make_scene(tmp_path / "c_nan", seed=3)
+    albedo = np.full((48, 40, 3), 0.5, np.float32)
+    albedo[20, 20] = np.nan
+    write_image(nan / "gt_albedo.exr", albedo, half=False)
+    size = make_scene(tmp_path / "d_size", seed=4)
+    write_image(size / "input.png", np.full((36, 36, 3), 0.3, np.float32))
+    code = main(["eval", str(tmp_path), "--method", "sh9", "--use-gt-mask", "--json"])
+    text = capsys.readouterr().out
+    result = json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} in the JSON"))
+    assert code == 1 and result["scenes"] == 1 and result["failed"] == 3
+    errors = {e["scene"]: e["error"] for e in result["per_scene"]}
+    assert errors["a_good"] is None
+    assert "gt_normal.exr is not the size of gt_mask.png" in errors["b_normal"]
+    assert "gt_albedo.exr holds NaN or Inf values" in errors["c_nan"]
+    assert "input.png" in errors["d_size"] and "36x36" in errors["d_size"] and "40x48" in errors["d_size"]
+    good = next(e for e in result["per_scene"] if e["scene"] == "a_good")
+    assert result["relit"]["psnr"] == pytest.approx(good["relit"]["psnr"])
+
+
+def test_finite_json_makes_every_nan_and_infinity_null():
+    from relightcli.evaluate import finite_json
+
+    value = {"a": float("nan"), "b": [1.0, float("inf"), {"c": -float("inf")}], "d": "x", "e": None, "f": 2}
+    assert finite_json(value) == {"a": None, "b": [1.0, None, {"c": None}], "d": "x", "e": None, "f": 2}

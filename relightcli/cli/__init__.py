@@ -391,7 +391,7 @@ def run_eval(args) -> int:
     result["albedo_source"] = args.albedo
     progress.close()
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(evaluate.finite_json(result), indent=2, allow_nan=False))
     else:
         print(evaluate.format_table(result))
         for entry in result["per_scene"]:
