@@ -175,14 +175,15 @@ OUTLINE_NET_SHARE = 0.5
 
 
 def anchor_albedo(ratio: np.ndarray, net_albedo: np.ndarray, mask: np.ndarray,
-                  ring: int = RATIO_RING) -> np.ndarray:
+                  ring: int = RATIO_RING, gain: float | None = None) -> np.ndarray:
     """The ratio albedo's detail and colour at the net's level: one gain for all channels, so
     that the mean over the person and the channels equals the net albedo's (the lighting's
     estimated intensity is less sure than the net's albedo level; its colour is not: the net's
     albedo greys strongly coloured clothes, where the photo over the light keeps their colour),
     clipped to [0, 1] (the means taken inside the outline ring). On the outline ring, where the
     photo mixes in the background, the mean of the net's albedo and the nearest pixel's inside
-    the ring (OUTLINE_NET_SHARE). (H, W, 3) float32 linear, mask (H, W).
+    the ring (OUTLINE_NET_SHARE). (H, W, 3) float32 linear, mask (H, W); gain: albedo_gain's,
+    when the caller has it already.
 
     Measured against a gain per channel (`relight eval DATA [--use-gt-mask]`, relit / albedo
     dB): 150 validation scenes at 256 (`python -m export.factory.eval_scenes data/factory256p
@@ -194,7 +195,8 @@ def anchor_albedo(ratio: np.ndarray, net_albedo: np.ndarray, mask: np.ndarray,
     if not inside.any():
         return np.asarray(ratio, np.float32)
     core = _inside_ring(inside, ring)
-    out = np.clip(ratio * np.float32(albedo_gain(ratio, net_albedo, mask, ring)), 0.0, 1.0)
+    gain = albedo_gain(ratio, net_albedo, mask, ring) if gain is None else gain
+    out = np.clip(ratio * np.float32(gain), 0.0, 1.0)
     if ring > 0:
         outline = inside & ~core
         nearest = fill_uncovered(out, core, outline) if core.any() else net_albedo

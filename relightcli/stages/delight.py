@@ -65,9 +65,9 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     if options.albedo != "net":
         frame.input_shading = input_shading
         ratio = compose.ratio_albedo(frame.crop, input_shading, albedo, frame.crop_mask)
-        frame.notes.setdefault("delight", {})["albedo_level"] = albedo_level_note(
-            compose.albedo_gain(ratio, albedo, frame.crop_mask))
-        albedo = compose.anchor_albedo(ratio, albedo, frame.crop_mask)
+        gain = compose.albedo_gain(ratio, albedo, frame.crop_mask)
+        frame.notes.setdefault("delight", {})["albedo_level"] = albedo_level_note(gain)
+        albedo = compose.anchor_albedo(ratio, albedo, frame.crop_mask, gain=gain)
     # Outside the mask's 0.5 contour a pixel mixes in the background (the photo there is mostly
     # not the person): it takes the albedo of the nearest pixel inside, so the soft edge, now
     # straight, does not carry the background's colour into the relit person
