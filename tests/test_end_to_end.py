@@ -54,7 +54,8 @@ def test_every_layer_of_the_example(random_models, tmp_path, capsys, monkeypatch
                                    "delight", "face", "raytrace", "refine", "face_refine", "compose"]
     assert item["stages"]["delight"]["light"] == "inverse rendering" and item["stages"]["delight"]["pixels"] > 0
     # The skier's face (goggles, 30 px) is found by the face mesh in the head square his pose places
-    assert item["stages"]["face"]["path"] == "face mesh" and item["stages"]["face"]["head"] == "person 0"
+    face, = item["stages"]["face"]["faces"]
+    assert face["path"] == "face mesh" and face["head"] == "person 0" and item["stages"]["face"]["fitted"] == 1
     assert set(item["seconds"]) >= set(item["plan"]["run"]) | {"load", "write", "total"}
     assert item["stages"]["raytrace"]["rays"] > 0
     photo = read_image(EXAMPLES / "skier.jpg")

@@ -1,12 +1,12 @@
-"""The face: MediaPipe's face detector and face mesh on the person's head, the ICT FaceKit model
-fitted to them, the fitted head ray-traced under the target environment and the face refinement
+"""The faces: MediaPipe's face detector and face mesh on each person's head, the ICT FaceKit model
+fitted to each, the fitted heads ray-traced under the target environment and the face refinement
 net blended into the body's shading."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from relightcli.stages.frame import Frame, Models, PerceptionView, resample
+from relightcli.stages.frame import FoundFace, Frame, Models, PerceptionView, resample
 from relightcli.stages.shading import sampling_effort
 
 
@@ -19,12 +19,13 @@ def person_mask_at(mask: np.ndarray, point) -> float:
 
 
 def stage_face(frame: Frame, options, models: Models) -> None:
-    """Find the face and fit the ICT model to it (relightcli.geometry.face): MediaPipe's face
-    detector on a head square placed by each found person's pose landmarks in turn (the person
-    crop's square when no person was found), the face mesh on the best detection, its 468
-    points -> the model's 68 landmarks (geometry.face_correspondence), the fit in the 128 face
-    crop framed around them. Planned only when a face refinement net ships to consume the fit
-    (pipeline.plan_stages). The note says which head square gave the face, or why none did."""
+    """Find every person's face and fit the ICT model to each (relightcli.geometry.face):
+    MediaPipe's face detector on a head square placed by each found person's pose landmarks
+    (the person crop's square when no person was found), the face mesh on the best detection,
+    its 468 points -> the model's 68 landmarks (geometry.face_correspondence), the fit in a 128
+    face crop framed around them. Planned only when a face refinement net ships to consume the
+    fits (pipeline.plan_stages). The note lists each head: its face's box and scores, the fit's
+    residual and crop, or why it has no fit; `skipped` when no face was fitted at all."""
     from relightcli.geometry.face import CropRect, fit_face_to_landmarks
     from relightcli.geometry.face_correspondence import load_correspondence
     from relightcli.nets.blaze import RotatedRect
@@ -37,47 +38,65 @@ def stage_face(frame: Frame, options, models: Models) -> None:
     if not heads:  # the person crop's square, in view pixels
         centre = (box.x0 + box.size / 2.0, box.y0 + box.size / 2.0) * scale
         heads = [("person crop (no person found)", RotatedRect(tuple(centre), box.size * scale[0], box.size * scale[1], 0.0))]
-    reasons = {}
+    frame.faces, report, fitted = [], [], []  # fitted: (head, landmarks' box) of each fit
     for source, head in heads:
-        face, reasons[source] = find_face(srgb, head, models.get("face_detector"), models.get("face_mesh"))
+        entry = {"head": source}
+        report.append(entry)
+        face, why = find_face(srgb, head, models.get("face_detector"), models.get("face_mesh"))
         if face is None:
+            entry["skipped"] = why
             continue
+        entry.update(face.summary(tuple(scale)))
         # view pixels -> photo pixels (continuous) -> pixel indices of the person crop
         photo = load_correspondence().landmarks(face.mesh.points[:, :2]) / scale
         landmarks = (photo - (box.x0, box.y0)) / box.scale - 0.5
-        if person_mask_at(frame.crop_mask, landmarks.mean(axis=0)) >= 0.5:
-            break
-        reasons[source] = "the face found lies outside the person mask"
-    else:
-        frame.notes["face"] = {"path": "face mesh", "skipped": "no face: " + "; ".join(
-            f"{source}: {why}" for source, why in reasons.items()) + ": face stage skipped"}
-        frame.face_fit, frame.face_crop = None, None
-        return
-    depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
-    fit, info = fit_face_to_landmarks(landmarks, frame.crop.shape, depth=depth)
-    frame.notes["face"] = {"path": "face mesh", "head": source, **face.summary(tuple(scale)), **info}
-    frame.face_fit = fit
-    frame.face_crop = CropRect(*info["crop"]) if fit is not None else None
+        centre = landmarks.mean(axis=0)
+        if person_mask_at(frame.crop_mask, centre) < 0.5:
+            entry["skipped"] = "the face found lies outside the person mask"
+            continue
+        same = [other for other, (lo, hi) in fitted if np.all(lo <= centre) and np.all(centre <= hi)]
+        if same:  # two heads that overlap (people one behind the other) found the same face
+            entry["skipped"] = f"the same face as {same[0]}'s"
+            continue
+        depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
+        fit, info = fit_face_to_landmarks(landmarks, frame.crop.shape, depth=depth)
+        entry.update(info)
+        if fit is None:
+            entry["skipped"] = info["skipped"].removesuffix(": face stage skipped")
+            continue
+        entry["path"] = "face mesh"
+        fitted.append((source, (landmarks.min(axis=0), landmarks.max(axis=0))))
+        frame.faces.append(FoundFace(source, fit, CropRect(*info["crop"])))
+    frame.notes["face"] = {"path": "face mesh", "fitted": len(frame.faces), "faces": report}
+    if not frame.faces:
+        frame.notes["face"]["skipped"] = "no face: " + "; ".join(
+            f"{entry['head']}: {entry['skipped']}" for entry in report) + ": face stage skipped"
 
 
 def stage_face_refine(frame: Frame, options, models: Models) -> None:
-    """The paper's face path: the fitted head ray-traced under the target environment in the
-    128x128 face crop, the face net on [that crop of the refined body shading, the coarse face
-    shading], and the result blended into the body's shading over the face (the face pixels
-    of the fitted model, feathered: geometry.face.face_blend_weight). Nothing changes when the
-    face stage found no face."""
+    """The paper's face path, for each fitted face in turn: the fitted head ray-traced under
+    the target environment in its 128x128 face crop, the face net on [that crop of the refined
+    body shading, the coarse face shading], and the result blended into the body's shading over
+    the face (the face pixels of the fitted model, feathered: geometry.face.face_blend_weight).
+    Nothing changes when the face stage fitted no face."""
+    if not frame.faces:
+        frame.notes["face_refine"] = {"skipped": frame.notes.get("face", {}).get("skipped", "no face fit")}
+        return
+    frame.notes["face_refine"] = {"faces": [refine_face(frame, face, options, models) for face in frame.faces]}
+
+
+def refine_face(frame: Frame, face: FoundFace, options, models: Models) -> dict:
+    """One face of the face path (stage_face_refine) composited into frame.shading; what the
+    report says of it."""
     from relightcli.geometry.face import cut_crop, face_blend_weight, paste_crop, render_face_shading
     from relightcli.nets.refine import shading_scale
 
-    if frame.face_fit is None:
-        frame.notes["face_refine"] = {"skipped": frame.notes.get("face", {}).get("skipped", "no face fit")}
-        return
     spp, target = sampling_effort(options)
     # Rendered at the face's own size in the person crop (e.g. 64 px at 512), then enlarged to
     # the net's 128 like the body crop: a quarter of the rays, and on the 89 validation
     # close-ups the net scores the same (19.64 vs 19.61 dB over the face)
-    crop = frame.face_crop
-    coarse, face_pixels = render_face_shading(frame.face_fit, models.light(frame.env),
+    crop = face.crop
+    coarse, face_pixels = render_face_shading(face.fit, models.light(frame.env),
                                               resolution=min(crop.size, crop.resolution), spp=spp,
                                               target_error=target, seed=options.seed, threads=1)
     coarse = resample(coarse, crop.resolution)
@@ -92,4 +111,4 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
     # the rest of the body keeps its values exactly
     patch = np.maximum(refined, 0.0) * (mask[..., None] > 0)
     frame.shading = paste_crop(frame.shading, patch, face_blend_weight(face_pixels), crop)
-    frame.notes["face_refine"] = {"face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
+    return {"head": face.head, "face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}

@@ -40,8 +40,7 @@ class Frame:
     view: "PerceptionView | None" = None  # the photo as the perception nets see it
     people: list = field(default_factory=list)  # relightcli.nets.pose.Person found, in view pixels
     portrait_mask: np.ndarray | None = None  # (h, w) selfie segmentation when only a face was found
-    face_fit: object | None = None  # relightcli.geometry.face.FaceFit, when the face stage found a face
-    face_crop: object | None = None  # its relightcli.geometry.face.CropRect in the working crop
+    faces: list = field(default_factory=list)  # FoundFace per face the face stage fitted
     bodies: list = field(default_factory=list)  # relightcli.geometry.body_fit.BodyFit per person
     body_scene: object | None = None  # Scene of the converged bodies (closed by the pipeline)
     body_maps: object | None = None  # relightcli.geometry.body_maps.BodyMaps of those bodies
@@ -55,6 +54,17 @@ class Frame:
         access (the outputs composite it a band of rows at a time instead)."""
         height, width = self.image.shape[:2]
         return compose.paste_back(self.relit_crop, self.box, height, width)
+
+
+@dataclass
+class FoundFace:
+    """A face the face stage fitted: whose head it is ("person 0"), the fitted model
+    (relightcli.geometry.face.FaceFit) and its face crop (relightcli.geometry.face.CropRect)
+    in the working crop."""
+
+    head: str
+    fit: object
+    crop: object
 
 
 # The perception nets see the photo at most this many pixels on its long side: their inputs are

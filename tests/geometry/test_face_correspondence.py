@@ -63,8 +63,9 @@ def test_the_face_stage_fits_the_face_of_an_evaluation_scene():
     options = RelightOptions(threads=1)
     note, _ = face_note(load_scene(folder), options, Models(1))
     assert "skipped" not in note, note
-    assert note["path"] == "face mesh" and note["head"] == "person 0"
-    assert note["residual_px"] < 2.0 and note["landmarks"] == 68
+    face, = note["faces"]
+    assert face["path"] == "face mesh" and face["head"] == "person 0"
+    assert face["residual_px"] < 2.0 and face["landmarks"] == 68
 
 
 def _frame_without_a_face(pixel_value):
@@ -87,7 +88,7 @@ def test_no_people_and_no_face_skips_with_the_reason(pixel_value):
 
     frame = _frame_without_a_face(pixel_value)
     stage_face(frame, None, Models(1))
-    assert frame.face_fit is None and frame.face_crop is None
+    assert frame.faces == []
     assert "person crop (no person found): no face detected" in frame.notes["face"]["skipped"]
 
 
@@ -104,4 +105,45 @@ def test_a_head_outside_the_photo_skips_with_the_reason():
     pose = Pose(rect, 1.0, landmarks, np.zeros((33, 3)), np.zeros((120, 90), np.float32), rect)
     frame.people = [Person(Detection(np.zeros(4), np.zeros((4, 2)), 0.9), pose)]
     stage_face(frame, None, Models(1))
-    assert frame.face_fit is None and "person 0: the head square lies outside the photo" in frame.notes["face"]["skipped"]
+    assert frame.faces == [] and "person 0: the head square lies outside the photo" in frame.notes["face"]["skipped"]
+
+
+def test_a_two_person_photo_gets_two_face_fits():
+    """Every person's face takes the face path, each with its own fit and face crop: the skier
+    beside his mirror image."""
+    from relightcli.io.images import read_image
+    from relightcli.pipeline import RelightOptions
+    from relightcli.stages import STAGES
+    from relightcli.stages.frame import Frame, Models
+
+    skier = read_image(REPO / "examples" / "skier.jpg").rgb
+    photo = np.concatenate([skier, skier[:, ::-1]], axis=1)
+    frame = Frame(image=photo, mask=None, env=np.ones((4, 8, 3), np.float32))
+    options, models = RelightOptions(resolution=256, threads=1), Models(1)
+    for stage in ("people", "mask", "crop", "geometry", "face"):
+        STAGES[stage](frame, options, models)
+    note = frame.notes["face"]
+    assert [face["head"] for face in note["faces"]] == ["person 0", "person 1"], note
+    assert note["fitted"] == 2 and [face.head for face in frame.faces] == ["person 0", "person 1"]
+    left, right = (face.crop for face in frame.faces)
+    assert left.left + left.size <= right.left  # two faces, one crop each, side by side
+    assert "skipped" not in note
+
+
+def test_two_heads_on_one_face_fit_it_once():
+    """Two people one behind the other can place their head squares on the same face: it is
+    fitted once, and the report says whose face the second head found."""
+    from relightcli.io.images import read_image
+    from relightcli.pipeline import RelightOptions
+    from relightcli.stages import STAGES
+    from relightcli.stages.frame import Frame, Models
+
+    frame = Frame(image=read_image(REPO / "examples" / "skier.jpg").rgb, mask=None, env=np.ones((4, 8, 3), np.float32))
+    options, models = RelightOptions(resolution=256, threads=1), Models(1)
+    STAGES["people"](frame, options, models)
+    frame.people = frame.people * 2
+    for stage in ("mask", "crop", "geometry", "face"):
+        STAGES[stage](frame, options, models)
+    first, second = frame.notes["face"]["faces"]
+    assert first["path"] == "face mesh" and second["skipped"] == "the same face as person 0's"
+    assert len(frame.faces) == 1

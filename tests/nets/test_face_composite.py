@@ -17,7 +17,7 @@ from relightcli.geometry.face_model import FaceModel, rotation_matrix, transform
 from relightcli.nets.refine import FaceRefineNet  # noqa: E402
 from relightcli.pipeline import RelightOptions  # noqa: E402
 from relightcli.stages.face import stage_face_refine  # noqa: E402
-from relightcli.stages.frame import Frame, Models  # noqa: E402
+from relightcli.stages.frame import FoundFace, Frame, Models  # noqa: E402
 
 
 @pytest.fixture
@@ -77,7 +77,7 @@ def test_face_refinement_composites_the_face_net_answer_over_the_face(face_net_d
     frame = Frame(image=np.zeros((size, size, 3), np.float32), mask=None,
                   env=np.full((8, 16, 3), radiance, np.float32))
     frame.crop_mask = crop_mask
-    frame.shading, frame.face_fit, frame.face_crop = body.copy(), fit, crop
+    frame.shading, frame.faces = body.copy(), [FoundFace("person 0", fit, crop)]
     stage_face_refine(frame, RelightOptions(spp=16, threads=1), ToyModels(face_net_dir))
 
     window = (slice(crop.top, crop.top + crop.size), slice(crop.left, crop.left + crop.size))
@@ -90,7 +90,7 @@ def test_face_refinement_composites_the_face_net_answer_over_the_face(face_net_d
     centre_row, centre_col = crop.top + crop.size // 2, crop.left + crop.size // 2
     centre = frame.shading[centre_row - 4:centre_row + 5, centre_col - 4:centre_col + 5].mean(axis=-1)
     assert 1.6 < np.median(centre) and centre.max() <= 2.0 + 1e-3
-    assert frame.notes["face_refine"]["face_pixels"] > 1000
+    assert frame.notes["face_refine"]["faces"][0]["face_pixels"] > 1000
 
 
 def test_face_refinement_without_a_face_changes_nothing(face_net_dir):
