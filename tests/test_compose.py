@@ -22,12 +22,13 @@ from relightcli.compose import (
     OUTLINE_NET_SHARE,
     anchor_albedo,
     preview_sheet,
+    shading_the_photo_shows,
     ratio_albedo,
     relight,
     replace_in_box,
 )
 from relightcli.errors import InputError
-from relightcli.io.images import BAND_ROWS
+from relightcli.io.images import BAND_ROWS, LUMINANCE
 
 
 def ramp(height, width):
@@ -376,3 +377,33 @@ def test_the_photos_detail_is_left_out_where_the_crop_is_as_fine_and_bounded_els
     assert np.isfinite(factor).all() and factor.max() <= DETAIL_RANGE and factor.min() >= 1.0 / DETAIL_RANGE
     assert factor[64, 64, 0] == DETAIL_RANGE
     assert (factor[mask < 0.5] == 1.0).all()
+
+
+def _face_relit(input_shading, photo, mask, net_albedo):
+    """The relit crop under a uniform new light (shading 1), the albedo as stage_delight
+    composes it."""
+    return anchor_albedo(ratio_albedo(photo, input_shading, net_albedo, mask), net_albedo, mask)
+
+
+def test_a_dip_of_the_input_shading_the_photo_does_not_show_makes_no_bright_spot():
+    """The solved light's shading dips where the mesh occludes itself but the photo's face is
+    evenly lit: divided by it, the albedo would be a bright spot in the relit face."""
+    size = 96
+    mask = np.zeros((size, size), np.float32)
+    mask[8:88, 8:88] = 1.0
+    photo = np.full((size, size, 3), 0.3, np.float32) * mask[..., None]
+    net_albedo = np.full((size, size, 3), 0.3, np.float32)
+    shading = np.ones((size, size, 3), np.float32)
+    shading[44:52, 44:52] = 0.08  # tiny: 8% of the face's shading
+    inside = mask > 0.5
+
+    def spot(relit):
+        ratio = (relit @ LUMINANCE)[inside] / (photo @ LUMINANCE)[inside]
+        return ratio.max() / np.median(ratio)
+
+    assert spot(_face_relit(shading, photo, mask, net_albedo)) > 1.65  # the spot, undivided
+    bounded = shading_the_photo_shows(shading, photo, mask, sigma=8.0)
+    assert spot(_face_relit(bounded, photo, mask, net_albedo)) < 1.1
+    # A shadow the photo shows stays in the shading (the albedo is not darkened by it)
+    photo[44:52, 44:52] *= 0.08
+    np.testing.assert_allclose(shading_the_photo_shows(shading, photo, mask, sigma=8.0)[44:52, 44:52], 0.08, rtol=0.05)

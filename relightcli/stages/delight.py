@@ -58,6 +58,8 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
         solved, frame.light = solve_input_light(frame, albedo, options, models)
         start = time.perf_counter()
         input_shading, note = trace_shading(frame, EnvironmentLight(solved), options, input_shadow_step(options))
+        input_shading = compose.shading_the_photo_shows(input_shading, frame.crop, frame.crop_mask,
+                                                        SHADING_DIP_SIGMA * options.resolution)
         frame.notes["delight"]["input_shading"] = {**{key: note[key] for key in ("shadow_step", "rays", "rel_error")},
                                                    "seconds": round(time.perf_counter() - start, 4)}
     elif options.albedo == "ratio":
@@ -74,6 +76,11 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     inside = frame.crop_mask > 0.5
     albedo = fill_uncovered(albedo, inside, frame.crop_mask > 0) if inside.any() else albedo
     frame.albedo = albedo * person_support(frame)
+
+
+# The solved light's shading may dip below its surroundings (a Gaussian of this share of the
+# crop's side: 8 px at 512) only as far as the photo does (compose.shading_the_photo_shows)
+SHADING_DIP_SIGMA = 1.0 / 64
 
 
 # The albedo level's error, RMS over the 20 validation scenes at 512 (true mask, `python

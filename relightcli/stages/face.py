@@ -77,7 +77,8 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
     """The paper's face path, for each fitted face in turn: the fitted head ray-traced under
     the target environment in its 128x128 face crop, the face net on [that crop of the refined
     body shading, the coarse face shading], and the result blended into the body's shading over
-    the face (the face pixels of the fitted model, feathered: geometry.face.face_blend_weight).
+    the face (the face pixels of the fitted model, feathered: geometry.face.face_blend_weight)
+    in log shading, at most a factor of 2 from the body's (geometry.face.FACE_LOG_BOUND).
     Nothing changes when the face stage fitted no face."""
     if not frame.faces:
         frame.notes["face_refine"] = {"skipped": frame.notes.get("face", {}).get("skipped", "no face fit")}
@@ -88,7 +89,18 @@ def stage_face_refine(frame: Frame, options, models: Models) -> None:
 def refine_face(frame: Frame, face: FoundFace, options, models: Models) -> dict:
     """One face of the face path (stage_face_refine) composited into frame.shading; what the
     report says of it."""
-    from relightcli.geometry.face import cut_crop, face_blend_weight, paste_crop, render_face_shading
+    from relightcli.geometry.face import FACE_LOG_BOUND, face_blend_weight, paste_crop
+
+    patch, face_pixels, scale = face_shading(frame, face, options, models)
+    frame.shading = paste_crop(frame.shading, patch, face_blend_weight(face_pixels), face.crop,
+                               log_bound=FACE_LOG_BOUND)
+    return {"head": face.head, "face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
+
+
+def face_shading(frame: Frame, face: FoundFace, options, models: Models):
+    """(the face net's shading (128, 128, 3) in the face crop, 0 outside the person; the fitted
+    face's pixels (128, 128) bool; the crop's shading scale the net saw)."""
+    from relightcli.geometry.face import cut_crop, render_face_shading
     from relightcli.nets.refine import shading_scale
 
     spp, target = sampling_effort(options)
@@ -109,6 +121,4 @@ def refine_face(frame: Frame, face: FoundFace, options, models: Models) -> dict:
     refined = models.get("face_refine").predict(body, coarse, scale)
     # frame.shading is already the person's: only the patch is cut to the person's pixels, so
     # the rest of the body keeps its values exactly
-    patch = np.maximum(refined, 0.0) * (mask[..., None] > 0)
-    frame.shading = paste_crop(frame.shading, patch, face_blend_weight(face_pixels), crop)
-    return {"head": face.head, "face_pixels": int(face_pixels.sum()), "scale": round(scale, 5)}
+    return np.maximum(refined, 0.0) * (mask[..., None] > 0), face_pixels, scale
