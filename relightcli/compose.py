@@ -368,7 +368,7 @@ def composite_crop(relit: np.ndarray, box: CropBox, mask: np.ndarray, background
     return rgb, mask.astype(np.float32, copy=False) if matte is None else sharpened(mask, matte)
 
 
-# The photo's detail factor: DETAIL_FLOOR (linear luminance) is added to both sides of the
+# The photo's detail factor: DETAIL_FLOOR (linear) is added to both sides of each channel's
 # ratio, which is held within 1 / DETAIL_RANGE .. DETAIL_RANGE
 DETAIL_FLOOR = 1e-3
 DETAIL_RANGE = 4.0
@@ -380,35 +380,55 @@ class PhotoDetail:
     photo's luminance over its crop's pasted back (the detail finer than a crop pixel; shading
     and light are smooth at that scale, so relit = albedo x shading takes it through the albedo
     alone), inside the person's mask eroded by a crop pixel (where the crop's pixels did not mix
-    in the background). One factor for the three channels: the photo's colour stays the crop's.
-    photo: (H, W, 3) linear full frame; crop: its (R, R, 3) working crop; mask: (H, W)."""
+    in the background). A factor per channel, so the photo's colour detail comes back with its
+    luminance: with one factor for the three, the crop's colour, blurred, stayed, and the relit
+    face's colour departed from the photo's at every colour edge (paint, lips, the eyes' whites:
+    `python bench/face_check.py`). photo: (H, W, 3) linear full frame; crop: its (R, R, 3)
+    working crop; mask: (H, W)."""
 
     def __init__(self, photo: np.ndarray, crop: np.ndarray, box: CropBox, mask: np.ndarray):
         self.photo, self.box = photo, box
         self.active = box.scale > 1.0
         if self.active:
-            self.crop_luminance = np.ascontiguousarray(crop @ LUMINANCE, dtype=np.float32)
+            self.crop = np.ascontiguousarray(crop, dtype=np.float32)
             side = 2 * int(np.ceil(box.scale)) + 1
             self.inside = cv2.erode((mask > 0.5).astype(np.uint8), np.ones((side, side), np.uint8),
                                     borderValue=0).astype(bool)
 
     def factor(self, rows: slice) -> np.ndarray | None:
-        """(h, W, 1) float32 detail factor of the full frame's `rows` (1 outside the person),
+        """(h, W, 3) float32 detail factor of the full frame's `rows` (1 outside the person),
         None when the crop is as fine as the photo."""
         if not self.active:
             return None
-        height, width = self.photo.shape[:2]
-        smooth = paste_back(self.crop_luminance, self.box, height, width, rows)
-        sharp = self.photo[rows] @ LUMINANCE
-        ratio = np.clip((sharp + DETAIL_FLOOR) / (smooth + DETAIL_FLOOR), 1.0 / DETAIL_RANGE, DETAIL_RANGE)
-        return np.where(self.inside[rows], ratio, 1.0).astype(np.float32)[..., None]
+        out = np.ones((len(range(*rows.indices(self.photo.shape[0]))), self.photo.shape[1], 3), np.float32)
+        columns = self.columns
+        out[:, columns] = self._factor(rows, columns)
+        return out
 
     def apply(self, layer: np.ndarray, rows: slice) -> np.ndarray:
         """A full-frame band (h, W, 3) of a layer times the detail factor, in place."""
-        factor = self.factor(rows)
-        if factor is not None:
-            layer *= factor
+        if self.active:
+            layer[:, self.columns] *= self._factor(rows, self.columns)
         return layer
+
+    @property
+    def columns(self) -> slice:
+        """The columns that hold the person's inside pixels (the factor is 1 elsewhere)."""
+        if not hasattr(self, "_columns"):
+            found = np.flatnonzero(self.inside.any(axis=0))
+            self._columns = slice(int(found[0]), int(found[-1]) + 1) if found.size else slice(0, 0)
+        return self._columns
+
+    def _factor(self, rows: slice, columns: slice) -> np.ndarray:
+        height, width = self.photo.shape[:2]
+        smooth = paste_back(self.crop, self.box, height, width, rows)[:, columns]
+        floor = np.float32(DETAIL_FLOOR)
+        smooth += floor
+        ratio = self.photo[rows, columns] + floor
+        ratio /= smooth
+        np.clip(ratio, 1.0 / DETAIL_RANGE, DETAIL_RANGE, out=ratio)
+        np.copyto(ratio, np.float32(1.0), where=~self.inside[rows, columns, None])
+        return ratio
 
 
 def to_display(image: np.ndarray, scale: float = 1.0) -> np.ndarray:
