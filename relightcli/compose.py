@@ -376,11 +376,12 @@ DETAIL_RANGE = 4.0
 
 class PhotoDetail:
     """What the working crop lost of the photo's detail, to put back into the full-frame layers
-    that carry it (relit, albedo): where the crop is coarser than the photo (box.scale > 1), the
-    photo's luminance over its crop's pasted back (the detail finer than a crop pixel; shading
-    and light are smooth at that scale, so relit = albedo x shading takes it through the albedo
-    alone), inside the person's mask eroded by a crop pixel (where the crop's pixels did not mix
-    in the background). A factor per channel, so the photo's colour detail comes back with its
+    that carry it (relit, albedo): unless the crop has the photo's own pixels (box.scale 1), the
+    photo over its crop pasted back (where the crop is coarser, the detail finer than a crop
+    pixel; where it is finer, what enlarging and shrinking back blurred; shading and light are
+    smooth at that scale, so relit = albedo x shading takes it through the albedo alone),
+    inside the person's mask eroded by a crop pixel (where the crop's pixels did not mix in the
+    background). A factor per channel, so the photo's colour detail comes back with its
     luminance: with one factor for the three, the crop's colour, blurred, stayed, and the relit
     face's colour departed from the photo's at every colour edge (paint, lips, the eyes' whites:
     `python bench/face_check.py`). photo: (H, W, 3) linear full frame; crop: its (R, R, 3)
@@ -388,7 +389,7 @@ class PhotoDetail:
 
     def __init__(self, photo: np.ndarray, crop: np.ndarray, box: CropBox, mask: np.ndarray):
         self.photo, self.box = photo, box
-        self.active = box.scale > 1.0
+        self.active = box.scale != 1.0
         if self.active:
             self.crop = np.ascontiguousarray(crop, dtype=np.float32)
             side = 2 * int(np.ceil(box.scale)) + 1
@@ -397,7 +398,7 @@ class PhotoDetail:
 
     def factor(self, rows: slice) -> np.ndarray | None:
         """(h, W, 3) float32 detail factor of the full frame's `rows` (1 outside the person),
-        None when the crop is as fine as the photo."""
+        None when the crop has the photo's own pixels."""
         if not self.active:
             return None
         out = np.ones((len(range(*rows.indices(self.photo.shape[0]))), self.photo.shape[1], 3), np.float32)

@@ -363,6 +363,23 @@ def test_the_photos_own_detail_comes_back_where_the_crop_was_coarser():
     np.testing.assert_array_equal(sharp[outside], blurred[outside])
 
 
+def test_a_crop_finer_than_the_photo_loses_no_detail_either():
+    """Enlarged into the crop and shrunk back, the photo comes back blurred: its detail is put
+    back the same way."""
+    from relightcli.compose import LUMINANCE, CropBox, PhotoDetail, composite_crop, crop_square
+
+    photo, mask = _textured_photo(128)
+    box = CropBox(0, 0, 128, 200)  # 0.64 photo pixels per crop pixel
+    crop = crop_square(photo, box)
+    sharp, _ = composite_crop(crop * np.float32(0.5), box, mask, "#000000", detail=PhotoDetail(photo, crop, box, mask))
+    blurred, _ = composite_crop(crop * np.float32(0.5), box, mask, "#000000")
+    inside = np.zeros_like(mask, bool)
+    inside[50:78, 50:78] = True
+    lum = lambda image: image[inside] @ LUMINANCE  # noqa: E731
+    assert np.corrcoef(lum(blurred), lum(photo))[0, 1] < 0.95
+    assert np.corrcoef(lum(sharp), lum(photo))[0, 1] > 0.999
+
+
 def test_the_photos_colour_detail_comes_back_too():
     """Fine colour texture (paint, lips, eyes) comes back channel by channel: the relit person
     keeps the photo's colour edges instead of the crop's blurred colour."""
@@ -382,12 +399,12 @@ def test_the_photos_colour_detail_comes_back_too():
     assert colour.std(axis=0).max() < 0.03
 
 
-def test_the_photos_detail_is_left_out_where_the_crop_is_as_fine_and_bounded_elsewhere():
+def test_the_photos_detail_is_left_out_where_the_crop_has_its_pixels_and_bounded_elsewhere():
     from relightcli.compose import DETAIL_RANGE, CropBox, PhotoDetail, crop_square
 
     photo, mask = _textured_photo(128)
-    fine = CropBox(0, 0, 128, 256)
-    assert PhotoDetail(photo, crop_square(photo, fine), fine, mask).factor(slice(0, 128)) is None
+    same = CropBox(0, 0, 128, 128)
+    assert PhotoDetail(photo, crop_square(photo, same), same, mask).factor(slice(0, 128)) is None
     # a black photo with one bright pixel: finite, within the range, 1 outside the person
     photo = np.zeros_like(photo)
     photo[64, 64] = 50.0
