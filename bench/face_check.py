@@ -62,10 +62,13 @@ def face_region(photo: np.ndarray, box, mask: np.ndarray, models) -> np.ndarray 
     view = PerceptionView.of(photo)
     scale = np.asarray(view.scale)
     x0, y0, x1, y1 = box
-    side = 2.0 * max(x1 - x0, y1 - y0)
-    head = RotatedRect(((x0 + x1) / 2 * scale[0], (y0 + y1) / 2 * scale[1]), side * scale[0], side * scale[1], 0.0)
-    face, _ = find_face(view.image, head, models.get("face_detector"), models.get("face_mesh"))
-    if face is None:
+    for grow in (2.0, 1.5, 3.0):  # the first square around the box where the face is found again
+        side = grow * max(x1 - x0, y1 - y0)
+        head = RotatedRect(((x0 + x1) / 2 * scale[0], (y0 + y1) / 2 * scale[1]), side * scale[0], side * scale[1], 0.0)
+        face, _ = find_face(view.image, head, models.get("face_detector"), models.get("face_mesh"))
+        if face is not None:
+            break
+    else:
         return None
     points = face.mesh.points[:, :2] / scale
     hull = cv2.convexHull(np.round(points).astype(np.int32))
@@ -111,12 +114,12 @@ def passes(scores: dict) -> list:
             if not (scores[name] >= goal if op == ">=" else scores[name] <= goal)]
 
 
-def picture(photo: np.ndarray, relit: np.ndarray, region: np.ndarray, path: Path) -> None:
+def picture(photo: np.ndarray, relit: np.ndarray, mask: np.ndarray, region: np.ndarray, path: Path) -> None:
     rows, cols = np.nonzero(region)
     pad = int(0.25 * max(np.ptp(rows), np.ptp(cols)))
     window = (slice(max(rows.min() - pad, 0), rows.max() + pad), slice(max(cols.min() - pad, 0), cols.max() + pad))
     gain = np.median(photo[region] @ LUMINANCE) / max(np.median(relit[region] @ LUMINANCE), EPS)
-    side = np.concatenate([photo[window], relit[window] * gain], axis=1)
+    side = np.concatenate([photo[window], relit[window] * gain * mask[window][..., None]], axis=1)
     height = side.shape[0]
     side = cv2.resize(side, (side.shape[1] * 256 // height, 256), interpolation=cv2.INTER_AREA)
     write_image(path, linear_to_srgb(np.clip(side, 0, None)))
@@ -155,7 +158,7 @@ def measure(photo: Path, hdr: str, work: Path, models, pictures: Path | None) ->
         face.update(face_scores(image, relit, region))
         face["misses"] = passes(face)
         if pictures:
-            picture(image, relit, region, pictures / f"{photo.stem}_{entry['head'].replace(' ', '')}.png")
+            picture(image, relit, mask, region, pictures / f"{photo.stem}_{entry['head'].replace(' ', '')}.png")
     return row
 
 
