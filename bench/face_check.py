@@ -146,8 +146,11 @@ def measure(photo: Path, hdr: str, work: Path, models, pictures: Path | None) ->
     mask = read_image(report["outputs"]["mask"], srgb=False).rgb[..., 0]
     row = {"photo": photo.name, "size": list(image.shape[:2]), "person_detail": round(detail(image, relit, mask), 3),
            "faces": []}
-    for entry in report["stages"].get("face", {}).get("faces", []):
-        face = {"head": entry["head"], "path": entry.get("path"), "skipped": entry.get("skipped")}
+    note = report["stages"].get("face", {})
+    # (a report from before every face took the face path holds one face, the note itself)
+    for entry in note.get("faces", [note] if "detection_box_photo" in note else []):
+        face = {"head": entry["head"], "path": entry.get("path") if "skipped" not in entry else None,
+                "skipped": entry.get("skipped")}
         row["faces"].append(face)
         if "detection_box_photo" not in entry:
             continue
