@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from relightcli.batch import Item, ItemReport
 from relightcli.errors import InputError
@@ -244,6 +245,11 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     frame = Frame(image=image, mask=mask, env=env)
     if mask is not None:
         frame.notes["mask"] = {"source": mask_source or "alpha channel"}
+    # numpy's and scipy's BLAS on one thread for the whole item: relightcli/__init__.py asks for
+    # it before they load, but a process that loaded numpy first (a Python caller, pytest) kept
+    # OpenBLAS's default threads, and with two people the body fits' products split across
+    # them rounded differently: other bytes than the CLI's for the same photo
+    blas = threadpool_limits(limits=1, user_api="blas")
     try:
         for stage in (s for s in plan.run if s not in LIGHTING_STAGES):
             with _timed(report, stage):
@@ -256,6 +262,7 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
             if on_lighting is not None:
                 on_lighting(index, frame)
     finally:
+        blas.restore_original_limits()
         for scene in (frame.scene, frame.body_scene):
             if scene is not None:
                 scene.close()
