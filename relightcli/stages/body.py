@@ -41,18 +41,24 @@ def stage_body(frame: Frame, options, models: Models) -> None:
 
 
 def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette):
-    """fit_body with OpenCV on one thread and without Intel IPP: the silhouette term's OpenCV
-    calls round differently with another thread count (1e-8 on the vertices), and with IPP
-    its precise distance transform differed from one process to the next on the same input
+    """fit_body with OpenCV and BLAS on one thread and without Intel IPP: the silhouette term's
+    OpenCV calls round differently with another thread count (1e-8 on the vertices), and with
+    IPP its precise distance transform differed from one process to the next on the same input
     (two or three outcomes in six runs, 1e-8 on the fit's residual, a half-float step in a few
-    shading pixels); an item's outputs must not depend on either (tests/test_determinism.py)."""
+    shading pixels); numpy's BLAS keeps its default threads in a process that loaded numpy
+    before relightcli, and two people's fits rounded differently then (one code value in a few
+    head pixels). An item's outputs must not depend on any of them (tests/test_determinism.py),
+    whichever entry point runs the stage (the pipeline, the data factory's coarse maps)."""
+    from threadpoolctl import threadpool_limits
+
     from relightcli.geometry.body_fit import fit_body
 
     threads, ipp = cv2.getNumThreads(), cv2.ipp.useIPP()
     cv2.setNumThreads(1)
     cv2.ipp.setUseIPP(False)
     try:
-        return fit_body(model, keypoints, visibility, world, silhouette)
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fit_body(model, keypoints, visibility, world, silhouette)
     finally:
         cv2.setNumThreads(threads)
         cv2.ipp.setUseIPP(ipp)
