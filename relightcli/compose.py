@@ -398,6 +398,9 @@ class PhotoDetail:
             side = 2 * int(np.ceil(box.scale)) + 1
             self.inside = cv2.erode((mask > 0.5).astype(np.uint8), np.ones((side, side), np.uint8),
                                     borderValue=0).astype(bool)
+            # the columns that hold the person's inside pixels (the factor is 1 elsewhere)
+            found = np.flatnonzero(self.inside.any(axis=0))
+            self.columns = slice(int(found[0]), int(found[-1]) + 1) if found.size else slice(0, 0)
 
     def factor(self, rows: slice) -> np.ndarray | None:
         """(h, W, 3) float32 detail factor of the full frame's `rows` (1 outside the person),
@@ -405,8 +408,7 @@ class PhotoDetail:
         if not self.active:
             return None
         out = np.ones((len(range(*rows.indices(self.photo.shape[0]))), self.photo.shape[1], 3), np.float32)
-        columns = self.columns
-        out[:, columns] = self._factor(rows, columns)
+        out[:, self.columns] = self._factor(rows, self.columns)
         return out
 
     def apply(self, layer: np.ndarray, rows: slice) -> np.ndarray:
@@ -414,14 +416,6 @@ class PhotoDetail:
         if self.active:
             layer[:, self.columns] *= self._factor(rows, self.columns)
         return layer
-
-    @property
-    def columns(self) -> slice:
-        """The columns that hold the person's inside pixels (the factor is 1 elsewhere)."""
-        if not hasattr(self, "_columns"):
-            found = np.flatnonzero(self.inside.any(axis=0))
-            self._columns = slice(int(found[0]), int(found[-1]) + 1) if found.size else slice(0, 0)
-        return self._columns
 
     def _factor(self, rows: slice, columns: slice) -> np.ndarray:
         height, width = self.photo.shape[:2]

@@ -39,6 +39,7 @@ def stage_face(frame: Frame, options, models: Models) -> None:
         centre = (box.x0 + box.size / 2.0, box.y0 + box.size / 2.0) * scale
         heads = [("person crop (no person found)", RotatedRect(tuple(centre), box.size * scale[0], box.size * scale[1], 0.0))]
     frame.faces, report, fitted = [], [], []  # fitted: (head, landmarks' box) of each fit
+    depth = None  # the person's front depth, made for the first face found
     for source, head in heads:
         entry = {"head": source}
         report.append(entry)
@@ -58,7 +59,8 @@ def stage_face(frame: Frame, options, models: Models) -> None:
         if same:  # two heads that overlap (people one behind the other) found the same face
             entry["skipped"] = f"the same face as {same[0]}'s"
             continue
-        depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
+        if depth is None:
+            depth = np.where(frame.crop_mask > 0.5, frame.geometry.front_depth, np.nan)
         fit, info = fit_face_to_landmarks(landmarks, frame.crop.shape, depth=depth)
         entry.update(info)
         if fit is None:
