@@ -58,6 +58,11 @@ DELIGHT_CONFIGS = {
     "paper": HRNetConfig(),
     "small": HRNetConfig(widths=(6, 12, 16, 24, 32, 48), modules=(1, 1, 1, 1, 1), blocks=1,
                          first_stage_blocks=1, light_width=32),
+    # the learning curve's widths around "small" (issue 47): half and twice its branches
+    "small_half": HRNetConfig(widths=(4, 6, 8, 12, 16, 24), modules=(1, 1, 1, 1, 1), blocks=1,
+                              first_stage_blocks=1, light_width=16),
+    "small_double": HRNetConfig(widths=(12, 24, 32, 48, 64, 96), modules=(1, 1, 1, 1, 1), blocks=1,
+                                first_stage_blocks=1, light_width=64),
     "vanilla": HRNetConfig(stem_stride=4, first_stage_residual=True, first_stage_blocks=4,
                            widths=(32, 64, 128, 256), modules=(1, 4, 3)),
     "five_stage": HRNetConfig(widths=(32, 64, 128, 256, 256), modules=(1, 2, 2, 2)),

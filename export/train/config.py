@@ -64,6 +64,7 @@ class TrainConfig:
     val_every: int = 500
     checkpoint_every: int = 500
     val_max_samples: int = 32
+    train_samples: int | None = None  # train on the first N training samples (curves over data size)
     coarse_shading: str = "standin"   # "standin" (degraded shading_b) or a dataset key
     shading_key: str = "shading_b"    # the target shading of the refinement nets
     ao_key: str = "ao"                # the body refinement's AO input: "ao" (truth) or "ao_pred" (the AO net's)
@@ -87,6 +88,8 @@ class TrainConfig:
                 raise ConfigError(f"{name} must be a positive integer, got {value!r}")
         if not (self.lr > 0 and self.lr_disc > 0):
             raise ConfigError(f"learning rates must be positive, got lr={self.lr}, lr_disc={self.lr_disc}")
+        if self.train_samples is not None and not (isinstance(self.train_samples, int) and self.train_samples > 0):
+            raise ConfigError(f"train_samples must be a positive integer or null, got {self.train_samples!r}")
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ConfigError(f"max_minutes must be positive or null, got {self.max_minutes}")
         if self.lr_schedule not in ("constant", "cosine"):

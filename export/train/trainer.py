@@ -61,7 +61,7 @@ class Trainer:
                          if self.disc is not None else None)
         self.step = 0
         self.elapsed_s = 0.0
-        self.train_ids = list(dataset.ids("train"))
+        self.train_ids = list(dataset.ids("train"))[:config.train_samples]
         if not self.train_ids:
             raise TrainingError("the dataset has no training samples; generate data first (export.factory)")
         checkpoint = self.out / CHECKPOINT_NAME

@@ -2,7 +2,7 @@
 and the Monte Carlo integrator (see DESIGN.md for the conventions they share).
 
 The names below are re-exported lazily, so importing one submodule (e.g. render.camera) does
-not import the integrator and scipy.stats with it.
+not import the integrator with it.
 """
 
 _EXPORTS = {

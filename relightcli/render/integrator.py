@@ -19,7 +19,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import qmc
 
 from relightcli.errors import UsageError
 from relightcli.render.camera import PixelGeometry
@@ -34,6 +33,7 @@ from relightcli.render.estimators import (
 )
 from relightcli.render.parallel import ForkedPasses, pass_statistics
 from relightcli.render.scene import Scene
+from relightcli.render.sobol import sobol_points
 
 STRATEGIES = ("mis", "env", "cosine", "uniform")
 # Independent randomisations of the Sobol sequence per pixel (standard error from R means)
@@ -298,8 +298,8 @@ class _Run:
             self.sobol, self.shift = {}, {}
             for index, (name, dims) in enumerate(self.streams.items()):
                 if dims:
-                    engine = qmc.Sobol(d=dims, scramble=True, seed=np.random.default_rng([seed, 1, index]))
-                    self.sobol[name] = engine.random_base2(int(np.ceil(np.log2(points))))
+                    self.sobol[name] = sobol_points(dims, int(np.ceil(np.log2(points))),
+                                                    np.random.default_rng([seed, 1, index]))
                     self.shift[name] = np.random.default_rng([seed, 2, index]).random(
                         (RQMC_GROUPS, pixels.size, dims))
 

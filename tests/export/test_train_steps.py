@@ -247,3 +247,18 @@ def test_delight_can_be_fed_the_predicted_normals_and_keeps_the_true_ones_for_it
         dataset.load("val", "val_0000"), np.random.default_rng(0))
     np.testing.assert_array_equal(example["irradiance_basis"], truth["irradiance_basis"])
     assert np.isfinite(trainer.train_step(trainer.next_batch())["loss"])
+
+
+def test_train_samples_limits_training_to_the_first_samples(dataset, tmp_path):
+    # the learning curves over data size train on the first N training samples only
+    trainer = Trainer(small_config("ao", train_samples=2), dataset, tmp_path)
+    assert trainer.train_ids == list(dataset.ids("train"))[:2]
+    with pytest.raises(ConfigError, match="train_samples"):
+        small_config("ao", train_samples=0)
+
+
+@pytest.mark.parametrize("size", ["small_half", "small_double"])
+def test_the_delight_learning_curve_widths_train(size, dataset, tmp_path):
+    trainer = Trainer(TrainConfig(net="delight", size=size, seed=0, steps=2, **OVERRIDES), dataset, tmp_path)
+    trainer.run(steps=2, validate=False)
+    assert trainer.step == 2

@@ -393,8 +393,11 @@ def test_control_variate_is_exact_where_nothing_occludes(env_samples):
     np.testing.assert_allclose(result.mean[geometry.mask], light.irradiance(normals), rtol=1e-5)
     # ... which agrees with plain MIS, converged, within its error and the table's 0.5%
     plain = shade_environment(scene, geometry, light, spp=1024, control_variate=False)
+    # A pixel's standard error comes from RQMC_GROUPS = 4 group means: its error over it follows
+    # Student's t with 3 degrees of freedom, beyond 5 on ~1.5% of pixels. A bias fails most.
     deviation = np.abs(result.mean - plain.mean)[geometry.mask]
-    assert np.all(deviation <= 5 * plain.stderr[geometry.mask] + 0.005 * plain.mean[geometry.mask])
+    outside = deviation > 5 * plain.stderr[geometry.mask] + 0.005 * plain.mean[geometry.mask]
+    assert outside.mean() <= 0.03
 
 
 def test_control_variate_is_unbiased_and_less_noisy_under_occlusion(env_samples):
