@@ -14,6 +14,7 @@ joints are compared with the true ones:
   bone deg  angle between fitted and true directions of the 8 limb bones (upper arms,
             forearms, thighs, shins): what the body's normals inherit
   facing deg  the torso's facing direction (hips and shoulders) fitted vs true: yaw and pitch
+  yaw deg   the same direction's turn about the camera's vertical axis alone
 
 Scenes where nobody is found or the fit does not converge are counted and left out.
 """
@@ -57,6 +58,11 @@ def facing(joints: dict) -> np.ndarray:
     up = (joints["upperarm01.L"] + joints["upperarm01.R"] - joints["upperleg01.L"] - joints["upperleg01.R"]) / 2
     forward = np.cross(left, up)
     return forward / np.linalg.norm(forward)
+
+
+def yaw_deg(forward: np.ndarray) -> float:
+    """Signed turn (degrees) of a camera-frame direction about +Y, 0 facing the camera (+Z)."""
+    return float(np.degrees(np.arctan2(forward[0], forward[2])))
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -114,6 +120,7 @@ def measure(folder: Path, data, split: str, use_gt_mask: bool, models) -> dict:
         "depth_cm": float(np.mean([abs(fm[n][2] - tm[n][2]) for n in MAIN]) * 100),
         "bone_deg": float(np.mean([angle_deg(fm[b] - fm[a], tm[b] - tm[a]) for a, b in BONES])),
         "facing_deg": angle_deg(facing(fm), facing(tm)),
+        "yaw_deg": abs((yaw_deg(facing(fm)) - yaw_deg(facing(tm)) + 180.0) % 360.0 - 180.0),
     }
 
 
@@ -133,7 +140,7 @@ def main() -> int:
         except RelightError as error:  # no person found: counted, left out of the means
             rows.append({"scene": folder.name, "skipped": str(error)})
         print({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
-    keys = ("2d_cm", "3d_cm", "depth_cm", "bone_deg", "facing_deg")
+    keys = ("2d_cm", "3d_cm", "depth_cm", "bone_deg", "facing_deg", "yaw_deg")
     fitted = [r for r in rows if "skipped" not in r]
     summary = {k: float(np.mean([r[k] for r in fitted])) for k in keys} if fitted else {}
     summary.update(scenes=len(rows), fitted=len(fitted))
