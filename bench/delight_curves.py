@@ -67,7 +67,7 @@ def pipeline_scores(run: Path, data: str, scenes: str, size: str, samples: int) 
         done = subprocess.run([sys.executable, "-m", "relightcli", "eval", scenes, "--json"], cwd=ROOT,
                               env=env, check=True, capture_output=True, text=True)
     report = json.loads(done.stdout)
-    return {key: report[key] for key in ("relit", "albedo", "shading") if key in report}
+    return {key: round(report[key]["psnr"], 3) for key in ("relit", "albedo", "shading") if key in report}
 
 
 def score(args) -> None:
