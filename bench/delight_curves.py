@@ -79,10 +79,10 @@ def score(args) -> None:
         config = json.loads(config_path.read_text())
         log = last_record(run / "log.jsonl")
         row = {"run": run.name, "size": config["size"], "train_samples": config["train_samples"],
-               "step": log.get("step"), "cpu_hours": round(log.get("elapsed_s", 0) * THREADS / 3600, 2),
-               "val": last_record(run / "val.jsonl")}
-        if args.eval:
+               "step": log.get("step"), "cpu_hours": round(log.get("elapsed_s", 0) * THREADS / 3600, 2)}
+        if args.eval:  # (exporting validates the net again: on the val split as it is now)
             row["pipeline"] = pipeline_scores(run, args.data, args.eval, config["size"], config["train_samples"])
+        row["val"] = last_record(run / "val.jsonl")
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.out:
