@@ -1,8 +1,19 @@
 # relightcli runtime image: ONNX Runtime + Embree on the CPU, no torch, no training code.
 #   docker build -t relightcli .
 #   docker run --rm -v "$PWD/in:/in" -v "$PWD/out:/out" relightcli /in --hdr /in/sky.hdr -o /out
+# A maintainer's check against a real engine: docker/check.sh
+#
+# The base is pinned by digest: the multi-platform index of python:3.11-slim-bookworm (Python
+# 3.11.16 on the Debian snapshot of 2026-08-24), copied from docker-library/repo-info,
+# repos/python/remote/3.11-slim-bookworm.md at commit bc9bbb47. It was not pulled or checked
+# against Docker Hub when it was pinned (no registry access there); the image was built and
+# tested on a local stand-in instead: --build-arg BASE_IMAGE=local/python:3.11-slim-bookworm.
+# To update: docker buildx imagetools inspect python:3.11-slim-bookworm (or docker pull it and
+# read RepoDigests from docker image inspect), put the index digest below, rebuild, and run
+# docker/check.sh.
+ARG BASE_IMAGE=python:3.11-slim-bookworm@sha256:fe556eaffd0d96abd8685b83bb8a69addd0dc730fa193669a7df0d49ddcfac02
 
-FROM python:3.11-slim-bookworm AS build
+FROM ${BASE_IMAGE} AS build
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
 COPY pyproject.toml README.md requirements.lock ./
@@ -13,15 +24,26 @@ RUN python -m venv /opt/venv \
  && /opt/venv/bin/pip install --no-compile -c requirements.lock . \
  && /opt/venv/bin/python -c "import importlib.util as u, sys; sys.exit(u.find_spec('torch') is not None)"
 
-FROM python:3.11-slim-bookworm AS runtime
-# No Debian packages beyond the base image: every wheel we install loads only libc, libstdc++,
-# libgcc and zlib from the system (tests/test_runtime_env.py checks this with ldd + dpkg).
+FROM ${BASE_IMAGE} AS runtime
+# tini (Debian's; its layer adds 1.8 MB, the binary used is 28 KB) is PID 1: it handles
+# signals from the first instruction, forwards them to relight and reaps. Every wheel we install
+# loads only libc, libstdc++, libgcc and zlib from the system (tests/test_runtime_env.py checks
+# this with ldd + dpkg).
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends tini \
+ && apt-get clean && rm -rf /var/lib/apt/lists/*
 COPY --from=build /opt/venv /opt/venv
+COPY docker/entrypoint.py /usr/local/lib/relight/entrypoint.py
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONDONTWRITEBYTECODE=1
-RUN useradd --create-home --uid 10001 relight \
- && relight --version && relight info
-USER relight
+# relight info must find the installed models and write nothing to ~ (no ~/.cache)
+RUN useradd --no-create-home --home-dir /work --uid 10001 relight \
+ && install -d -o relight -g relight /work \
+ && relight --version && relight info \
+ && test ! -e /root/.cache
 WORKDIR /work
-ENTRYPOINT ["relight"]
+# No USER: the entrypoint starts as root only to become the owner of the output folder (or of
+# the inputs when Docker created out/ as root), then execs relight (docker/entrypoint.py).
+# With docker run --user it runs as that user from the start.
+ENTRYPOINT ["/usr/bin/tini", "--", "/opt/venv/bin/python", "-I", "/usr/local/lib/relight/entrypoint.py"]
 CMD ["--help"]

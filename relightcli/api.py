@@ -90,6 +90,9 @@ class Result:
         source = self.source or Path("/dev/null/image.png")
         read_only = [self.options.mask_path] if self.options.mask_path else []
         (item,) = batch.plan_items([(source, Path(source.stem))], out, self.options.outputs, read_only=read_only)
+        error = batch.output_error(item)  # a folder where a file goes, a name too long, ...
+        if error is not None:
+            raise error
         existing = batch.existing_outputs(item)
         if existing and not overwrite:
             raise UsageError("output exists", path=existing[0], fix="pass overwrite=True or another path")

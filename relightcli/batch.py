@@ -5,20 +5,30 @@ Library code: it raises and returns; the CLI prints. One failing item never stop
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import ctypes.util
+import errno
 import glob
+import importlib.util
 import json
+import logging
 import multiprocessing
+import multiprocessing.connection
 import os
+import pickle
+import re
+import secrets
 import signal
+import socket
+import stat
+import sys
 import tempfile
 import threading
 import time
+import traceback
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
@@ -77,31 +87,32 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
     The relative stem (input's path below the directory it was found in, without extension)
     names the outputs, so a recursive scan keeps sub-folders apart. `exclude` lists files
     (e.g. the --hdr map living in the input folder) and folders (the output) to leave out.
+    A folder's entries with an image extension are kept even when they cannot be opened (a
+    symlink loop, a dangling link): each fails as its own item (`unusable_items`), naming the
+    file, and the batch goes on; entries with other names are no photos, whatever they are.
+    A sub-folder that cannot be read is passed over with a RelightWarning.
     """
-    exclude = {Path(p).resolve() for p in exclude}
+    exclude = {_resolved(Path(p)) for p in exclude}
     found: list[tuple[Path, Path]] = []
     seen: set[Path] = set()  # resolved paths: a file named twice (or via a link) is relit once
 
     def add(file: Path, stem: Path) -> None:
-        resolved = file.resolve()
+        resolved = _resolved(file)
         if resolved not in seen:
             seen.add(resolved)
             found.append((file, stem))
 
     for raw in paths:
         path = Path(raw)
-        if path.is_dir():
+        if os.path.isdir(path):
             _refuse_folder_in_output(path, exclude)
-            pattern = "**/*" if recursive else "*"
-            for file in sorted(path.glob(pattern)):
-                resolved = file.resolve()
-                if not file.is_file() or file.suffix.lower() not in IMAGE_EXTENSIONS:
-                    continue
+            for file in _folder_images(path, recursive):
+                resolved = _resolved(file)
                 if resolved in exclude or any(parent in exclude for parent in resolved.parents):
                     continue
                 add(file, file.relative_to(path).with_suffix(""))
-        elif path.exists() or path.suffix:
-            # Files, including missing ones: each missing file fails as its own item.
+        elif path.suffix or os.path.lexists(path):
+            # Files, including missing and broken ones: each fails as its own item.
             add(path, Path(path.stem))
         else:
             raise InputError("no such file or directory", path=path, fix="check the input path")
@@ -110,17 +121,36 @@ def collect_inputs(paths: Iterable[str | Path], *, recursive: bool, exclude: Ite
     return found
 
 
+def _folder_images(folder: Path, recursive: bool) -> list[Path]:
+    """The entries of `folder` (with `recursive`, of its sub-folders too; linked folders are not
+    followed) named with an image extension that are no folders, sorted. Raises InputError
+    when `folder` itself cannot be read."""
+    if not os.access(folder, os.R_OK | os.X_OK):
+        raise InputError("permission denied: the folder cannot be read", path=folder,
+                         fix="make it readable (chmod a+rx) or run as a user who may read it")
+    unreadable: list[OSError] = []
+    files = []
+    for parent, _, names in os.walk(folder, onerror=unreadable.append):
+        files += [Path(parent, name) for name in names if Path(name).suffix.lower() in IMAGE_EXTENSIONS]
+        if not recursive:
+            break
+    for error in unreadable:
+        warnings.warn(f"{error.filename}: the folder cannot be read ({error.strerror or error}): its photos "
+                      "are left out", RelightWarning, stacklevel=3)
+    return sorted(files)
+
+
 def pair_masks(found: list[tuple[Path, Path]]) -> tuple[list[tuple[Path, Path]], dict[Path, Path]]:
     """Split `collect_inputs`'s list into photos and their masks: an input NAME_mask.EXT in
     the same folder as an input NAME.EXT2 (any image extensions; the name the mask layer is
     written under) is that photo's mask, not a photo. Returns (the photos, {photo: mask});
     a NAME_mask image without its photo stays a photo."""
     suffix = LAYERS["mask"].suffix
-    by_name = {(file.parent.resolve(), file.stem): file for file, _ in found}
+    by_name = {(_resolved(file.parent), file.stem): file for file, _ in found}
     masks = {}
     for file, _ in found:
         if file.stem.endswith(suffix):
-            photo = by_name.get((file.parent.resolve(), file.stem[:-len(suffix)]))
+            photo = by_name.get((_resolved(file.parent), file.stem[:-len(suffix)]))
             if photo is not None:
                 masks[photo] = file
     mask_files = set(masks.values())
@@ -130,7 +160,7 @@ def pair_masks(found: list[tuple[Path, Path]]) -> tuple[list[tuple[Path, Path]],
 def _refuse_folder_in_output(folder: Path, exclude: set[Path]) -> None:
     """An input folder that is (or lies inside) an excluded folder, the output, would be
     scanned empty: say so instead of "no input images found"."""
-    resolved = folder.resolve()
+    resolved = _resolved(folder)
     if resolved in exclude:
         raise UsageError("the output folder is the input folder", path=folder,
                          fix="choose another -o, e.g. a sub-folder such as -o "
@@ -144,18 +174,25 @@ LIT_LAYERS = ("relit", "shading", "preview")  # the layers that change with the 
 
 
 def plan_items(found, out: str | Path, layers: Iterable[str], lightings: Iterable[str] = (),
-               read_only: Iterable[str | Path] = (), masks: dict[Path, Path] | None = None) -> list[Item]:
+               read_only: Iterable[str | Path] = (), masks: dict[Path, Path] | None = None,
+               skip_existing: bool = False) -> list[Item]:
     """Decide every output path. `out` is a file when there is exactly one input and it has an
     extension (one of OUTPUT_EXTENSIONS, else a UsageError); it is a directory when there are
     several inputs, when it has no extension, ends with '/' or is an existing folder.
     `lightings`: the names of several lightings (a turntable's frames 'turn000', ..., or the
     maps' names): each lit layer becomes one file per lighting, keyed 'relit#000', ... and
     named after it (photo_turn000.png, photo_shading_sunset.exr). `masks`: each photo's own
-    mask (`pair_masks`). Refuses collisions and outputs that are inputs: the photos, their
-    masks and the `read_only` files (the environment maps, --mask)."""
+    mask (`pair_masks`). Refuses, before any work: an `out` that cannot be opened
+    (`path_problem`), two outputs that are one file (two inputs' or one input's two layers)
+    and outputs that are inputs: the photos, their masks and the `read_only` files (the
+    environment maps, --mask); unless `skip_existing` keeps every existing output, also a
+    photo's mask file NAME_mask beside it that was not given (`_masks_beside`)."""
     lightings = list(lightings)
     masks = masks or {}
-    as_folder = str(out).endswith(("/", os.sep)) or Path(out).is_dir() or not Path(out).suffix
+    out_error = path_error(Path(out), OutputError, "choose another -o")
+    if out_error is not None:
+        raise out_error
+    as_folder = str(out).endswith(("/", os.sep)) or os.path.isdir(out) or not Path(out).suffix
     out = Path(out)
     layers = list(layers)
     single_file = len(found) == 1 and not as_folder
@@ -178,8 +215,11 @@ def plan_items(found, out: str | Path, layers: Iterable[str], lightings: Iterabl
                 outputs[name] = out / stem.parent / f"{stem.name}{layer.suffix}{layer.extension}"
         if lightings:
             outputs = _one_per_lighting(outputs, lightings)
+        _refuse_layer_collisions(outputs, lightings)
         items.append(Item(path, outputs, masks.get(path)))
-    _refuse_collisions(items, [*read_only, *masks.values()])
+    own_masks = {} if skip_existing else _masks_beside([item.input for item in items])
+    own_masks.update({mask: photo for photo, mask in masks.items()})
+    _refuse_collisions(items, read_only, own_masks)
     return items
 
 
@@ -194,20 +234,80 @@ def _one_per_lighting(outputs: dict[str, Path], lightings: list[str]) -> dict[st
     return numbered
 
 
-def _refuse_collisions(items: list[Item], read_only: Iterable[str | Path] = ()) -> None:
-    """No output may replace a file that is read (a photo, the map, the mask), whatever path
-    names it: resolved paths (symlinks, '..') and, for files that exist, the inode (hard links)."""
-    inputs = [item.input for item in items] + [Path(p) for p in read_only]
-    resolved_inputs = {path.resolve(): path for path in inputs}
-    inode_inputs = {key: path for path in inputs if (key := _inode(path)) is not None}
+def _refuse_layer_collisions(outputs: dict[str, Path], lightings: list[str]) -> None:
+    """Two layers of one input named alike: under a map called albedo.hdr the relit image is
+    photo_albedo.png, which is also the albedo layer's name; with maps sun.hdr and
+    preview_sun.hdr the relit image under the second is the preview under the first."""
+    taken: dict[Path, str] = {}
+    for key, path in outputs.items():
+        if path in taken:
+            lit = [k.partition("#") for k in (taken[path], key) if "#" in k]
+            maps = sorted({lightings[int(index)] for _, _, index in lit})
+            raise OutputError(f"{_layer_words(taken[path], lightings)} and {_layer_words(key, lightings)} "
+                              "would both be written to this file", path=path,
+                              fix=f"rename the map '{maps[0]}' (its name is part of the output names)"
+                              if maps else "choose other --outputs or another -o")
+        taken[path] = key
+
+
+def _layer_words(key: str, lightings: list[str]) -> str:
+    """'the albedo layer', 'the relit layer under sunset' for the output keys 'albedo', 'relit#001'."""
+    name, _, index = key.partition("#")
+    return f"the {name} layer" + (f" under {lightings[int(index)]}" if index else "")
+
+
+def _masks_beside(photos: list[Path]) -> dict[Path, Path]:
+    """{mask file: photo} for every existing image NAME_mask.EXT beside a photo NAME.EXT2:
+    the photo's own mask by its name (the name the mask layer is written under), also when
+    it was not given as an input. Each folder is listed once."""
+    suffix = LAYERS["mask"].suffix
+    by_folder: dict[Path, dict[str, list[str]]] = {}
+    found = {}
+    for photo in photos:
+        folder = _resolved(photo.parent)
+        if folder not in by_folder:
+            by_folder[folder] = _images_by_stem(folder)
+        for name in by_folder[folder].get(photo.stem + suffix, ()):
+            found[photo.parent / name] = photo
+    return found
+
+
+def _images_by_stem(folder: Path) -> dict[str, list[str]]:
+    """The names of the regular files in `folder` with an image extension, by stem; {} when it
+    cannot be listed."""
+    names: dict[str, list[str]] = {}
+    try:
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                stem, ext = os.path.splitext(entry.name)
+                if ext.lower() in IMAGE_EXTENSIONS and _is_regular_file(Path(entry.path)):
+                    names.setdefault(stem, []).append(entry.name)
+    except OSError:
+        return {}
+    return names
+
+
+def _refuse_collisions(items: list[Item], read_only: Iterable[str | Path] = (),
+                       masks: dict[Path, Path] | None = None) -> None:
+    """No output may replace a file that is read (a photo, the map, the mask) nor a photo's
+    own mask file (`masks`: {mask file: its photo}), whatever path names it: resolved paths
+    (symlinks, '..') and, for files that exist, the inode (hard links). No two inputs may write
+    one file."""
+    protected = [(Path(mask), f"the mask file {mask} of the photo {photo}") for mask, photo in (masks or {}).items()]
+    protected += [(path, f"the input {path}") for path in [item.input for item in items] + [Path(p) for p in read_only]]
+    by_path, by_inode = {}, {}
+    for path, words in protected:
+        by_path.setdefault(_resolved(path), words)
+        if (key := _inode(path)) is not None:
+            by_inode.setdefault(key, words)
     seen: dict[Path, Path] = {}
     for item in items:
         for path in item.outputs.values():
-            resolved = path.resolve()
-            overwritten = resolved_inputs.get(resolved) or inode_inputs.get(_inode(path))
+            resolved = _resolved(path)
+            overwritten = by_path.get(resolved) or by_inode.get(_inode(path))
             if overwritten is not None:
-                raise OutputError(f"output would overwrite the input {overwritten}", path=path,
-                                  fix="choose another -o")
+                raise OutputError(f"output would overwrite {overwritten}", path=path,
+                                  fix="choose another -o: inputs and photos' own NAME_mask files are never written over")
             if resolved in seen and seen[resolved] != item.input:
                 raise OutputError(
                     f"two inputs ({seen[resolved]}, {item.input}) would write the same output",
@@ -220,10 +320,136 @@ def _refuse_collisions(items: list[Item], read_only: Iterable[str | Path] = ()) 
 def _inode(path: Path) -> tuple[int, int] | None:
     """(device, inode) of an existing file, None when there is none."""
     try:
-        stat = path.stat()
-    except OSError:
+        info = os.stat(path)
+    except (OSError, ValueError):
         return None
-    return stat.st_dev, stat.st_ino
+    return info.st_dev, info.st_ino
+
+
+def _resolved(path: Path) -> Path:
+    """`path` made absolute with its symlinks followed as far as they lead, to compare paths;
+    never raises. Path.resolve raises on a symlink loop (RuntimeError up to Python 3.12,
+    OSError from 3.13) and on some names too long; os.path.realpath, not strict, stops there,
+    and the error is reported where the file is used (`path_problem`)."""
+    try:
+        return Path(os.path.realpath(path))
+    except (OSError, ValueError):
+        return Path(os.path.abspath(path))
+
+
+# What a path error means to a user, and what to do about it: errno -> (words, fix)
+_PATH_ERRORS = {
+    errno.ELOOP: ("a symlink loop (following its links never ends)", "point the link at a file, or remove it"),
+    errno.ENAMETOOLONG: ("the name is too long for the filesystem", "use a shorter name"),
+    errno.EACCES: ("permission denied (a folder on its path cannot be searched)",
+                   "make the folders on its path searchable (chmod a+x)"),
+    errno.ENOTDIR: ("a part of its path that should be a folder is a file", "check the path"),
+}
+
+
+def path_problem(path: Path) -> tuple[str, str] | None:
+    """(what keeps `path` from being opened, the fix), in words, for the path errors a reader
+    reports badly or not at all: a symlink loop, a dangling symlink, a name too long, a folder
+    on its path that is a file or cannot be searched. None when the path leads to something, or
+    to nothing at all (a missing file: its reader says so)."""
+    try:
+        os.stat(path)
+        return None
+    except FileNotFoundError:
+        if not os.path.islink(path):
+            return None
+        try:
+            target = os.readlink(path)
+        except OSError:
+            target = "?"
+        return f"a dangling symlink (to {target}, which does not exist)", "point the link at a file, or remove it"
+    except OSError as exc:
+        return _PATH_ERRORS.get(exc.errno, (exc.strerror or str(exc), "check the path"))
+    except ValueError:  # an embedded NUL byte
+        return "not a valid path (it holds a NUL byte)", "check the path"
+
+
+def path_error(path: Path, kind: type[RelightError] = InputError, fix: str | None = None) -> RelightError | None:
+    """`path_problem` as a project error of `kind` naming the file (its fix, or `fix`), or None."""
+    problem = path_problem(path)
+    return None if problem is None else kind(problem[0], path=path, fix=fix or problem[1])
+
+
+def unusable_items(items: list[Item]) -> dict[int, RelightError]:
+    """{index: why} for the items that cannot be done, found before any work: an input or its
+    own mask that cannot be opened (`path_problem`: InputError), an output that cannot be
+    written where it goes (`output_problem`: OutputError). Each fails as its own item; the
+    others are not concerned."""
+    limits: dict[Path, tuple[int, int]] = {}  # per folder: the filesystem's name and path limits
+    refused = {}
+    for index, item in enumerate(items):
+        if (error := _item_error(item, limits)) is not None:
+            refused[index] = error
+    return refused
+
+
+def _item_error(item: Item, limits: dict[Path, tuple[int, int]]) -> RelightError | None:
+    """The first reason `unusable_items` finds for this item, or None."""
+    for path in (item.input, item.mask):
+        if path is not None and (error := path_error(path)) is not None:
+            return error
+    return output_error(item, limits)
+
+
+def output_error(item: Item, limits: dict[Path, tuple[int, int]] | None = None) -> OutputError | None:
+    """The first of the item's outputs that cannot be written where it goes (`output_problem`),
+    as an OutputError naming it, or None. `limits`: a cache of `_name_limits` by folder."""
+    limits = {} if limits is None else limits
+    for path in item.outputs.values():
+        if path.parent not in limits:
+            limits[path.parent] = _name_limits(path.parent)
+        if (problem := output_problem(path, *limits[path.parent])) is not None:
+            return OutputError(problem[0], path=path, fix=problem[1])
+    return None
+
+
+# The writers' temporary files add at most this to their staging file's name:
+# ".<name>.tmp-<8 hex><ext>" (io.images._temporary_path), ".<name>.<8 hex>.tmp" (geometry.mesh)
+WRITER_TEMPORARY_BYTES = 24
+
+
+def output_problem(path: Path, name_max: int = 255, path_max: int = 4096) -> tuple[str, str] | None:
+    """(what keeps an output file from being written at `path`, the fix), or None: a name too
+    long once staged (`_staging_path` and the writers' temporary names are longer than the
+    output's), a path error (`path_problem`: a symlink loop, a dangling link), or a folder or
+    other non-file where the file goes. `name_max`, `path_max`: the filesystem's limits in bytes."""
+    staged = _staging_path(path)
+    longest = len(os.fsencode(staged.name)) + WRITER_TEMPORARY_BYTES
+    if longest > name_max:
+        return (f"the name is too long for the filesystem: writing it takes a temporary name of {longest} "
+                f"bytes, and a name may have {name_max}", "give the photo a shorter name, or choose a shorter -o")
+    if len(os.fsencode(os.path.abspath(staged))) + WRITER_TEMPORARY_BYTES >= path_max:
+        return (f"the path is too long for the filesystem (a path may have {path_max} bytes)",
+                "choose an -o with a shorter path")
+    problem = path_problem(path)
+    if problem is not None:
+        return problem
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None  # nothing there yet
+    if stat.S_ISDIR(mode):
+        return "a folder is where this output file goes", "move the folder away, or choose another -o"
+    if not stat.S_ISREG(mode):
+        return ("a pipe, device or socket is where this output file goes",
+                "remove it, or choose another -o")
+    return None
+
+
+def _name_limits(folder: Path) -> tuple[int, int]:
+    """(longest name, longest path) in bytes on the filesystem of `folder` or, while it does not
+    exist yet, of the nearest folder above it that does; (255, 4096) where it cannot be asked."""
+    for candidate in [folder, *Path(os.path.abspath(folder)).parents]:
+        try:
+            return os.pathconf(candidate, "PC_NAME_MAX"), os.pathconf(candidate, "PC_PATH_MAX")
+        except (OSError, ValueError):
+            continue
+    return 255, 4096
 
 
 def prepare_output_dirs(items: list[Item]) -> None:
@@ -235,15 +461,26 @@ def prepare_output_dirs(items: list[Item]) -> None:
             with tempfile.NamedTemporaryFile(dir=folder, prefix=".relight-probe-"):
                 pass
         except OSError as exc:
+            problem = path_problem(folder)
             raise OutputError(
-                f"output folder cannot be written ({exc.strerror or exc})",
+                f"output folder cannot be written ({problem[0] if problem else exc.strerror or exc})",
                 path=folder,
                 fix="choose a writable -o",
             ) from exc
 
 
 def existing_outputs(item: Item) -> list[Path]:
-    return [path for path in item.outputs.values() if path.exists()]
+    """The item's outputs that exist as regular files (or links to one): those --skip-existing
+    keeps and --overwrite replaces. Anything else where an output goes is refused before the
+    run (`unusable_items`), never taken for a finished output."""
+    return [path for path in item.outputs.values() if _is_regular_file(path)]
+
+
+def _is_regular_file(path: Path) -> bool:
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except (OSError, ValueError):
+        return False
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -293,13 +530,16 @@ def run_items(
     worker: a picklable object with `setup()` (load models once per process) and
     `__call__(item) -> ItemReport`. workers > 1 runs items on that many processes (each calls
     `setup()` once); the reports come back in input order whatever the number of workers.
-    RelightWarnings raised while processing an item are recorded into its report.
+    A worker process that dies (the OOM killer, kill -9) fails only the item it held, and
+    another takes its place (`_Pool`). RelightWarnings raised while processing an item are
+    recorded into its report. Staging files that ended runs left behind are removed first.
 
     An item's outputs appear together or not at all (see `relight_staged`). A KeyboardInterrupt
     (Ctrl-C, or the CLI's SIGTERM handler raising `Stopped`) stops the batch at once: the items
     in flight are discarded, the worker processes killed, and `Stopped` is raised carrying the
     reports (finished items as they are, the others marked stopped).
     """
+    remove_dead_runs_staging(items)
     if workers <= 1 or len(items) <= 1:
         return _run_sequential(items, worker, skip_existing, overwrite, on_done)
     return _run_pool(items, worker, workers, skip_existing, overwrite, on_done)
@@ -323,73 +563,330 @@ def _run_sequential(items, worker, skip_existing, overwrite, on_done) -> list[It
 
 
 def _run_pool(items, worker, workers, skip_existing, overwrite, on_done) -> list[ItemReport]:
-    # spawn, not fork: the parent may hold ONNX Runtime / OpenMP threads that fork would break.
-    context = multiprocessing.get_context("spawn")
-    commit_lock = context.Lock()  # held by a worker while it renames an item's files into place
-    committed = context.RawArray("b", len(items))  # set under the lock: item i is in place
-    reports: list[ItemReport | None] = [None] * len(items)
-    futures = {}
-    pool = ProcessPoolExecutor(min(workers, len(items)), mp_context=context, initializer=_init_pool_worker,
-                               initargs=(worker, commit_lock, committed))
+    pool = _Pool(items, worker, min(workers, len(items)), skip_existing, overwrite)
     try:
-        for index, item in enumerate(items):
-            futures[pool.submit(_pool_task, index, item, skip_existing, overwrite)] = index
-        for future in as_completed(futures):
-            index = futures[future]
-            reports[index] = _pool_report(future, items[index])
-            if on_done is not None:
-                on_done(reports[index])
-        pool.shutdown(wait=True)
-    except OSError as exc:  # the workers could not be started (EAGAIN, ENOMEM, a process limit)
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise RelightError(f"could not start {min(workers, len(items))} worker processes "
-                           f"({exc.strerror or exc})", fix="retry with --workers 1") from exc
+        pool.run(on_done)
     except KeyboardInterrupt as interrupt:
         with _signals_ignored():  # a second Ctrl-C must not leave the workers running
-            _kill_workers(pool, commit_lock)
-            pool.shutdown(wait=True, cancel_futures=True)
-            for future, index in futures.items():
-                if reports[index] is None:
-                    reports[index] = _report_after_kill(future, items[index], committed[index])
-        raise _stopped(interrupt, items, reports) from None
-    return reports
+            pool.stop()
+        raise _stopped(interrupt, items, pool.reports) from None
+    finally:
+        pool.close()
+    return pool.reports
 
 
-def _pool_report(future, item: Item) -> ItemReport:
+START_DEATHS_LIMIT = 3  # worker processes in a row ending before set-up: no more are started
+COMMIT_WAIT_S = 10.0  # how long a stop waits for renames under way (milliseconds, but a hung disk)
+
+
+class _PoolWorker:
+    """One worker process as the pool sees it, with the pool's end of their pipe."""
+
+    def __init__(self, process, conn):
+        self.process, self.conn = process, conn
+        self.ready = False  # set up: it takes items
+        self.index: int | None = None  # the item it holds
+        self.moving = False  # told to rename that item's files into place, not yet done
+        self.ended = False  # its end of the pipe closed: the process has ended
+        self.oom_kills = _oom_kill_count()  # the OOM killer's count when it started or took its item
+
+
+class _Pool:
+    """The local engine: `size` spawned processes, each holding one `worker`, fed one item at a
+    time over a pipe of its own.
+
+    A worker that dies fails the item it held and no other, and a new one takes its place;
+    after START_DEATHS_LIMIT deaths in a row before set-up, none is started and the items left
+    fail. A worker asks before renaming an item's files into place and says when they all are
+    (`_PoolCommit`): a stop never kills one half-way through an item's renames, and an item in
+    place is reported ok even when its worker died before its report came back. SIGINT and
+    SIGTERM are held while the books change, so a stop finds every item waiting, held by a
+    worker, or done. The workers die with this process (`_die_with_parent`).
+    """
+
+    def __init__(self, items: list[Item], worker, size: int, skip_existing: bool, overwrite: bool):
+        self.items, self.size = items, size
+        self.context = multiprocessing.get_context("spawn")  # fork would break ONNX Runtime / OpenMP threads
+        # The first message to every worker (`_serve_items`), pickled once for all
+        self.setup_message = pickle.dumps((worker, skip_existing, overwrite, _staging_tag()))
+        self.todo = collections.deque(range(len(items)))  # items not yet given to a worker
+        self.reports: list[ItemReport | None] = [None] * len(items)
+        self.left = len(items)  # items without a report
+        self.in_place: set[int] = set()  # items whose files are all renamed into place
+        self.workers: list[_PoolWorker] = []
+        self.start_deaths, self.start_death_cause = 0, ""
+        self.closing = False
+        self._deferral = _SignalDeferral()
+
+    def run(self, on_done) -> None:
+        """Every item to a worker; `on_done(report)` as each finishes."""
+        while self.left:
+            with self._held():
+                started = self._start_workers()
+                done = [] if self.workers else self._fail_todo(*self._start_failure())
+            for worker in started:  # may wait for the child to read it: a stop kills the child
+                with contextlib.suppress(BrokenPipeError):  # it died starting: its sentinel tells
+                    worker.conn.send_bytes(self.setup_message)
+            if self.workers:
+                ready = set(multiprocessing.connection.wait(
+                    [w.conn for w in self.workers] + [w.process.sentinel for w in self.workers]))
+                with self._held():
+                    done += self._handle(ready)
+            for index in done:
+                if on_done is not None:
+                    on_done(self.reports[index])
+
+    @contextlib.contextmanager
+    def _held(self):
+        """SIGINT and SIGTERM held inside, raised at its end, once the books are straight."""
+        with self._deferral:
+            try:
+                yield
+            finally:
+                self._deferral.deliver_pending()
+
+    def _start_workers(self) -> list[_PoolWorker]:
+        """Processes enough for the items left, at most `size`; none once too many died starting."""
+        wanted = min(self.size, len(self.todo) + sum(w.index is not None for w in self.workers))
+        started = []
+        while len(self.workers) < wanted and self.start_deaths < START_DEATHS_LIMIT:
+            conn, child_conn = self.context.Pipe()
+            process = self.context.Process(target=_pool_worker_main, args=(child_conn,), name="relight-worker")
+            try:
+                with _stop_signals_blocked():
+                    process.start()
+            except OSError as exc:  # EAGAIN, ENOMEM: a process or memory limit
+                conn.close()
+                self._count_start_death(f"no worker process could be started ({exc.strerror or exc})")
+                continue
+            finally:
+                child_conn.close()
+            started.append(_PoolWorker(process, conn))
+            self.workers.append(started[-1])
+        return started
+
+    def _handle(self, ready: set) -> list[int]:
+        """What the ready workers sent, then their deaths; returns the items finished."""
+        done = []
+        for worker in list(self.workers):
+            if worker.conn in ready or worker.process.sentinel in ready:
+                done += self._receive(worker)
+                if worker.ended or worker.process.sentinel in ready:
+                    done += self._bury(worker)
+        return done
+
+    def _receive(self, worker: _PoolWorker) -> list[int]:
+        """Every message waiting in the worker's pipe; sets `ended` when the pipe has closed."""
+        done = []
+        while not worker.ended and worker.conn.poll():
+            try:
+                message = worker.conn.recv()
+            except (EOFError, ConnectionResetError):
+                worker.ended = True
+                break
+            done += self._on_message(worker, *message)
+        return done
+
+    def _on_message(self, worker: _PoolWorker, kind: str, *args) -> list[int]:
+        if self.closing and kind not in ("committed", "report"):
+            return []  # no more work and no more commits: the workers are about to be killed
+        if kind == "ready":
+            worker.ready, self.start_deaths = True, 0
+            self._give_work(worker)
+        elif kind == "commit":
+            worker.moving = True
+            _send(worker, "go")
+        elif kind == "committed":
+            self.in_place.add(args[0])
+            worker.moving = False
+        elif kind == "report":
+            index, report = args
+            worker.index, worker.moving = None, False
+            self._give_work(worker)
+            return self._finish(index, report)
+        elif kind == "setup failed":  # a user's error (a missing model): every item would fail alike
+            return self._fail_todo(*args)
+        elif kind == "crashed":  # a bug: raised here, as a batch in one process would raise it
+            raise RuntimeError(f"a worker process failed:\n{args[0]}")
+        else:
+            raise RuntimeError(f"unknown message {kind!r} from a worker process")
+        return []
+
+    def _give_work(self, worker: _PoolWorker) -> None:
+        """The next item, or None when none is left (the worker then ends)."""
+        if self.closing:
+            return
+        if not self.todo:
+            _send(worker, None)
+            return
+        worker.index, worker.oom_kills = self.todo.popleft(), _oom_kill_count()
+        _send(worker, (worker.index, self.items[worker.index]))
+
+    def _finish(self, index: int, report: ItemReport) -> list[int]:
+        self.reports[index] = report
+        self.left -= 1
+        return [index]
+
+    def _bury(self, worker: _PoolWorker) -> list[int]:
+        """The worker process has ended: its item fails, unless its files were all in place."""
+        self.workers.remove(worker)
+        worker.process.join()
+        worker.conn.close()
+        cause = _death_cause(worker.process.exitcode, worker.oom_kills)
+        worker.process.close()
+        if not worker.ready:
+            self._count_start_death(cause)
+        if worker.index is None:
+            return []
+        return self._finish(worker.index, self._lost_item_report(worker, cause))
+
+    def _lost_item_report(self, worker: _PoolWorker, cause: str) -> ItemReport:
+        item = self.items[worker.index]
+        staged = [path for path in item.outputs.values() if _staging_path(path).exists()]
+        if worker.index in self.in_place or (worker.moving and not staged):
+            return _committed_report(item)  # whole on disk; its own report died with the worker
+        _discard_staged(item, leftovers=True)
+        if worker.moving and len(staged) < len(item.outputs):
+            error = (f"{item.input}: {cause} while moving its outputs into place: some are this "
+                     "run's, the others as they were (rerun it with --overwrite)")
+        else:
+            error = (f"{item.input}: {cause} while relighting it; nothing of it was written "
+                     f"({_death_fix(cause)})")
+        return ItemReport(str(item.input), error=error, exit_code=EXIT_ITEMS_FAILED)
+
+    def _count_start_death(self, cause: str) -> None:
+        self.start_deaths += 1
+        self.start_death_cause = cause
+
+    def _start_failure(self) -> tuple[str, int]:
+        return (f"not relit: {self.start_deaths} worker processes in a row ended before they were "
+                f"ready, the last: {self.start_death_cause} (retry with --workers 1)", EXIT_ITEMS_FAILED)
+
+    def _fail_todo(self, reason: str, code: int) -> list[int]:
+        """Every item not yet given to a worker fails with `reason`."""
+        done = []
+        while self.todo:
+            item = self.items[index := self.todo.popleft()]
+            done += self._finish(index, ItemReport(str(item.input), error=f"{item.input}: {reason}",
+                                                   exit_code=code))
+        return done
+
+    def stop(self) -> None:
+        """Stop now (the caller ignores stop signals meanwhile): let the renames under way end,
+        then kill every worker; the items left without a report are the stopped ones."""
+        self.closing = True
+        deadline = time.monotonic() + COMMIT_WAIT_S
+        while (movers := [w for w in self.workers if w.moving]) and time.monotonic() < deadline:
+            ready = multiprocessing.connection.wait(
+                [w.conn for w in movers] + [w.process.sentinel for w in movers],
+                timeout=deadline - time.monotonic())
+            self._handle(set(ready))
+        self.close()
+
+    def close(self) -> None:
+        """Kill the workers left (SIGKILL: they ignore SIGINT and SIGTERM), keep the reports they
+        sent before, and remove what their unfinished items had staged. Idempotent."""
+        self.closing = True
+        for worker in self.workers:
+            worker.process.kill()
+        for worker in self.workers:
+            worker.process.join()
+            self._receive(worker)
+            worker.conn.close()
+            worker.process.close()
+            if worker.index is None or self.reports[worker.index] is not None:
+                continue
+            if worker.index in self.in_place:
+                self._finish(worker.index, _committed_report(self.items[worker.index]))
+            else:
+                _discard_staged(self.items[worker.index], leftovers=True)
+        self.workers = []
+
+
+def _send(worker: _PoolWorker, message) -> None:
+    """Send to a worker; one that has just died cannot take it, and its sentinel tells."""
+    with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+        worker.conn.send(message)
+
+
+def _committed_report(item: Item) -> ItemReport:
+    """The report of an item whose files are all in place but whose worker died before its own
+    report came back."""
+    return ItemReport(str(item.input), {key: str(path) for key, path in item.outputs.items()})
+
+
+OOM_CAUSE = "the worker process ran out of memory (the kernel's OOM killer ended it)"
+
+
+def _death_cause(exitcode: int | None, oom_kills_before: int | None) -> str:
+    """Why a worker process ended, in words. Out of memory only on evidence: it was SIGKILLed
+    and the OOM killer's count (`_oom_kill_count`) rose since it took its item."""
+    if exitcode is None or exitcode >= 0:
+        return f"the worker process exited unexpectedly (exit code {exitcode})"
+    signum = -exitcode
+    oom_kills = _oom_kill_count()
+    if signum == signal.SIGKILL and None not in (oom_kills, oom_kills_before) and oom_kills > oom_kills_before:
+        return OOM_CAUSE
     try:
-        return future.result()
-    except BrokenProcessPool:
-        return ItemReport(
-            str(item.input), exit_code=EXIT_ITEMS_FAILED,
-            error=f"{item.input}: the worker process died (out of memory?); retry with fewer --workers")
+        name = signal.Signals(signum).name
+    except ValueError:
+        name = "unknown"
+    return f"the worker process died (signal {signum}, {name})"
 
 
-def _report_after_kill(future, item: Item, committed: bool) -> ItemReport | None:
-    """An uncollected item's report once the workers are dead: its own when it came back in
-    time, a bare one when its files were committed but the report was lost with its worker;
-    None (the item is stopped) otherwise, after removing what it had staged."""
-    if future.done() and not future.cancelled() and future.exception() is None:
-        return future.result()
-    if committed:
-        return ItemReport(str(item.input), {key: str(path) for key, path in item.outputs.items()})
-    _discard_staged(item, leftovers=True)
+def _death_fix(cause: str) -> str:
+    if cause == OOM_CAUSE:
+        return "rerun with fewer --workers or a lower --resolution, and --skip-existing"
+    return "rerun with --skip-existing to do it again"
+
+
+def _oom_kill_count() -> int | None:
+    """How many processes the kernel's OOM killer has ended in this process's memory cgroup
+    (cgroup v2 memory.events, v1 memory.oom_control), or on the whole host (/proc/vmstat)
+    where the cgroup's count cannot be read; None where neither can (not Linux)."""
+    for path in _oom_counter_files():
+        try:
+            for line in path.read_text().splitlines():
+                key, _, value = line.partition(" ")
+                if key == "oom_kill":
+                    return int(value)
+        except (OSError, ValueError):
+            continue
     return None
 
 
-def _kill_workers(pool: ProcessPoolExecutor, commit_lock) -> None:
-    """Kill the pool's processes at once (SIGKILL: they ignore SIGINT and SIGTERM), but never
-    while one renames an item's files: holding the commit lock first means a worker dies
-    computing or waiting, leaving only staging files, never half an item's outputs."""
-    locked = commit_lock.acquire(timeout=10)  # a commit takes milliseconds; a dead holder, forever
+def _oom_counter_files() -> list[Path]:
     try:
-        processes = list((pool._processes or {}).values())  # private: there is no public handle
-        for process in processes:
-            process.kill()
-        for process in processes:
-            process.join(timeout=10)
+        groups = Path("/proc/self/cgroup").read_text().splitlines()  # "id:controllers:/path"
+    except OSError:
+        groups = []
+    files = []
+    for line in groups:
+        _, controllers, group = line.split(":", 2)
+        if not controllers:
+            files.append(Path("/sys/fs/cgroup", group.lstrip("/"), "memory.events"))
+        elif "memory" in controllers.split(","):
+            files.append(Path("/sys/fs/cgroup/memory", group.lstrip("/"), "memory.oom_control"))
+    return files + [Path("/proc/vmstat")]
+
+
+@contextlib.contextmanager
+def _stop_signals_blocked():
+    """SIGINT and SIGTERM blocked in this thread inside the block (where the OS can block them).
+    A process started inside inherits the mask, so a stop sent to the whole process group
+    (Ctrl-C) waits until the worker ignores it (`_pool_worker_main`) instead of ending it with
+    a traceback half-way through its start-up; this process gets what came once the block ends."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # first: starting the tracker unblocks both signals
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
     finally:
-        if locked:
-            commit_lock.release()
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 @contextlib.contextmanager
@@ -438,41 +935,85 @@ class _SignalDeferral:
 
 
 class _PoolCommit:
-    """The commit guard of a pool worker: holds the batch's commit lock while item `index`'s
-    files are renamed into place and marks the item committed before letting go, so the
-    parent, once it holds the lock, knows which items are whole on disk."""
+    """The commit guard of a pool worker: asks the pool before item `index`'s files are renamed
+    into place and tells it once they all are. The pool answers at once unless it is stopping;
+    then it kills this worker, which has renamed nothing."""
 
-    def __init__(self, lock, committed, index: int):
-        self.lock, self.committed, self.index = lock, committed, index
+    def __init__(self, conn, index: int):
+        self.conn, self.index = conn, index
 
     def __enter__(self):
-        self.lock.acquire()
+        self.conn.send(("commit", self.index))
+        answer = self.conn.recv()
+        if answer != "go":
+            raise RuntimeError(f"the pool answered {answer!r} to a commit")
         return self
 
     def __exit__(self, exc_type, exc, traceback) -> None:
         if exc_type is None:
-            self.committed[self.index] = 1
-        self.lock.release()
+            self.conn.send(("committed", self.index))
 
 
-_POOL_WORKER = None
-_COMMIT_LOCK = None
-_COMMITTED = None
-
-
-def _init_pool_worker(worker, commit_lock, committed) -> None:
-    global _POOL_WORKER, _COMMIT_LOCK, _COMMITTED
-    # The parent decides when to stop: Ctrl-C reaches the whole process group and SIGTERM may
-    # too (systemd); a worker dying on its own would lose the item it holds half-way.
+def _pool_worker_main(conn) -> None:
+    """A pool worker process (`_Pool`): takes the worker from the pipe, sets it up, then
+    relights the items that come one by one, until None comes or the pipe closes."""
+    # Stopping is the parent's: Ctrl-C reaches the whole process group and SIGTERM may too
+    # (systemd); a worker ending on its own would lose the item it holds. Both signals have
+    # been blocked since this process started (`_stop_signals_blocked`): what came is dropped.
     for signum in STOP_SIGNALS:
         signal.signal(signum, signal.SIG_IGN)
-    worker.setup()
-    _POOL_WORKER, _COMMIT_LOCK, _COMMITTED = worker, commit_lock, committed
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    _die_with_parent()
+    try:
+        _serve_items(conn)
+    except (EOFError, BrokenPipeError, ConnectionResetError):
+        return  # the parent closed the pipe or died: there is nobody left to report to
 
 
-def _pool_task(index: int, item: Item, skip_existing: bool, overwrite: bool) -> ItemReport:
-    commit = _PoolCommit(_COMMIT_LOCK, _COMMITTED, index)
-    return _run_one(item, _POOL_WORKER, skip_existing, overwrite, commit_guard=commit)
+def _serve_items(conn) -> None:
+    global _STAGING_TAG
+    worker, skip_existing, overwrite, tag = pickle.loads(conn.recv_bytes())
+    _STAGING_TAG = tag  # the parent's: it removes what a dead worker staged
+    try:
+        worker.setup()
+    except RelightError as exc:
+        conn.send(("setup failed", str(exc), exc.exit_code))
+        return
+    except Exception:  # a bug: the parent raises it with this traceback
+        conn.send(("crashed", traceback.format_exc()))
+        return
+    conn.send(("ready",))
+    while (task := conn.recv()) is not None:
+        index, item = task
+        try:
+            report = _run_one(item, worker, skip_existing, overwrite, commit_guard=_PoolCommit(conn, index))
+        except Exception:  # a bug, as above
+            conn.send(("crashed", traceback.format_exc()))
+            return
+        conn.send(("report", index, report))
+
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def _die_with_parent() -> None:
+    """End this worker process when the batch's process ends, however it ends (kill -9 too): a
+    worker left behind keeps its memory and goes on writing outputs that nobody will report.
+    On Linux the kernel sends SIGKILL (PR_SET_PDEATHSIG; if the parent died before the call,
+    this process has been handed to another already); everywhere, a thread waits for the
+    parent's end of the spawn pipe to close."""
+    parent = multiprocessing.parent_process()
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        if os.getppid() != parent.pid:
+            os._exit(1)
+    threading.Thread(target=_exit_after, args=(parent,), name="relight-parent-watch", daemon=True).start()
+
+
+def _exit_after(parent) -> None:
+    parent.join()  # returns once the parent has ended
+    os._exit(1)
 
 
 def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool,
@@ -523,7 +1064,13 @@ def relight_staged(item: Item, worker, commit_guard) -> ItemReport:
     staged = {key: _staging_path(path) for key, path in item.outputs.items()}
     committed = False
     try:
-        report = worker(replace(item, outputs=staged))
+        try:
+            report = worker(replace(item, outputs=staged))
+        except RelightError as exc:  # a writer's error names the file the user asked for
+            final = {str(staged[key]): path for key, path in item.outputs.items()}.get(exc.path)
+            if final is None:
+                raise
+            raise type(exc)(exc.message, path=final, fix=exc.fix) from exc
         if report.error is None:
             with commit_guard:
                 for key, path in item.outputs.items():
@@ -545,8 +1092,56 @@ def _move_into_place(staged: Path, path: Path) -> None:
 
 def _staging_path(path: Path) -> Path:
     """Where `path` is written before its item commits: hidden, same folder (so the rename is
-    atomic), same extension (the writers choose the format from it)."""
-    return path.with_name(f".{path.name}.relight-part{path.suffix}")
+    atomic), same extension (the writers choose the format from it), marked with this run
+    (`_staging_tag`): two runs writing one folder never share a staging file."""
+    return path.with_name(f".{path.name}.relight-part-{_staging_tag()}{path.suffix}")
+
+
+_STAGING_TAG = None  # made on first use (`_staging_tag`); a pool worker takes its parent's
+# A staging file's name, or its writer's temporary file's ('..NAME.relight-part-...EXT.tmp-...')
+_STAGING_NAME = re.compile(r"^\..*\.relight-part-(?P<host>[A-Za-z0-9]*)-(?P<pid>\d+)-[0-9a-f]{8}\.")
+
+
+def _staging_tag() -> str:
+    """This run's mark in its staging files' names: host, process id and a random token."""
+    global _STAGING_TAG
+    if _STAGING_TAG is None:
+        _STAGING_TAG = f"{_host_label()}-{os.getpid()}-{secrets.token_hex(4)}"
+    return _STAGING_TAG
+
+
+def _host_label() -> str:
+    return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname().split(".")[0])[:32]
+
+
+def remove_dead_runs_staging(items: list[Item]) -> None:
+    """Remove the staging files, and their writers' temporary files, left in the items' output
+    folders by runs on this host that have ended (a killed run cannot clean up after itself).
+    A live run's are left alone, and so are another host's and older versions' unmarked ones:
+    none of them can collide with this run's."""
+    if os.name != "posix":
+        return  # no way to ask whether a process lives without touching it
+    host = _host_label()
+    for folder in sorted({path.parent for item in items for path in item.outputs.values()}):
+        try:
+            names = os.listdir(folder)
+        except OSError:
+            continue
+        for name in names:
+            match = _STAGING_NAME.match(name)
+            if match and match["host"] == host and not _process_alive(int(match["pid"])):
+                with contextlib.suppress(OSError):  # gone already, or not ours to remove: harmless
+                    os.unlink(os.path.join(folder, name))
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's
+    return True
 
 
 def _discard_staged(item: Item, leftovers: bool = False) -> None:
@@ -622,6 +1217,9 @@ def summary(reports: list[ItemReport]) -> dict:
     return out
 
 
+RAY_TIMEOUT_S = 30.0  # how long a Ray cluster named by --address may take to answer
+
+
 def run_items_ray(
     items: list[Item],
     worker,
@@ -631,15 +1229,62 @@ def run_items_ray(
     address: str | None = None,
     skip_existing: bool = False,
     overwrite: bool = False,
+    timeout_s: float = RAY_TIMEOUT_S,
 ) -> list[ItemReport]:
     """The same job on Ray Data: a pool of `workers` stateful actors, each holding one `worker`
     (models loaded once per actor), fed file paths; decoding happens inside the actors with our
     own I/O (Ray's image reader drops EXIF orientation, 16-bit and EXR).
 
-    address: an existing cluster ("auto", "ray://host:10001"); None starts a local instance
-    with `workers * threads_per_worker` CPUs. On a cluster, inputs and outputs must live on a
-    filesystem every node sees at the same path. Reports come back in input order.
+    address: an existing cluster ("auto", "ray://host:10001"), which must answer within
+    `timeout_s` seconds; None starts a local instance with `workers * threads_per_worker` CPUs.
+    On a cluster, inputs and outputs must live on a filesystem every node sees at the same
+    path. Reports come back in input order. A KeyboardInterrupt stops the batch as in
+    `run_items`: `Stopped` carries the reports of the items done, the others marked stopped.
     """
+    ray = _import_ray(address)
+    started_here = not ray.is_initialized()
+    if started_here:
+        _start_ray(ray, address, workers * threads_per_worker, timeout_s)
+    reports: list[ItemReport | None] = [None] * len(items)
+    start_ns = time.time_ns()
+    try:
+        remove_dead_runs_staging(items)
+        for row in _ray_dataset(ray, items, worker, workers, threads_per_worker, skip_existing,
+                                overwrite).iter_rows():  # each report as its item finishes
+            reports[int(row["index"])] = ItemReport(**json.loads(str(row["report"])))
+    except KeyboardInterrupt as interrupt:
+        _shut_down_ray(ray, items, started_here)
+        for index, item in enumerate(items):
+            if reports[index] is None and _written_since(item, start_ns):
+                reports[index] = _committed_report(item)  # in place before its report came back
+        raise _stopped(interrupt, items, reports) from None
+    finally:
+        _shut_down_ray(ray, items, started_here)
+    missing = [items[i].input for i, r in enumerate(reports) if r is None]
+    if missing:
+        raise RelightError(f"Ray returned no result for {len(missing)} item(s), e.g. {missing[0]}")
+    return reports
+
+
+def _shut_down_ray(ray, items: list[Item], started_here: bool) -> None:
+    """End the Ray instance this batch started (its actors killed), then remove what those
+    actors had staged on this machine. Idempotent."""
+    if started_here and ray.is_initialized():
+        with _signals_ignored():  # a second Ctrl-C must not leave Ray's processes running
+            ray.shutdown()
+        remove_dead_runs_staging(items)
+
+
+def _written_since(item: Item, start_ns: int) -> bool:
+    """Every output of `item` is a file written since `start_ns` (time.time_ns): a Ray actor
+    committed it, whether or not its report reached this process."""
+    try:
+        return all(path.stat().st_mtime_ns >= start_ns for path in item.outputs.values())
+    except OSError:
+        return False
+
+
+def _import_ray(address: str | None):
     try:
         import ray
         import ray.data
@@ -648,44 +1293,85 @@ def run_items_ray(
             "--engine ray needs the optional 'ray' extra",
             fix="pip install 'relightcli[ray]', or use the default local engine",
         ) from exc
+    if address and address.startswith("ray://") and importlib.util.find_spec("grpc") is None:
+        raise MissingDependencyError(
+            f"--address {address} connects through Ray Client, which needs the 'ray[client]' extra",
+            fix="pip install 'ray[client]', or run relight on a node of the cluster with --address auto")
+    return ray
 
-    started_here = not ray.is_initialized()
-    if started_here:
+
+def _start_ray(ray, address: str | None, num_cpus: int, timeout_s: float) -> None:
+    """Connect to the cluster at `address`, or start a local one (None). The connection is
+    tried in a thread of its own and abandoned after `timeout_s` (ray.init retries an address
+    where nothing answers for minutes), and from there Ray installs no signal handlers; a local
+    start installs SIGTERM handlers that end the process with sys.exit, so it runs here, with
+    this process's own handlers put back after it."""
+    if address is None:
         package_root = str(Path(__file__).resolve().parents[1])
-        ray.init(
-            address=address,
-            num_cpus=None if address else workers * threads_per_worker,
-            include_dashboard=False,
-            log_to_driver=False,
-            configure_logging=False,
-            runtime_env=None if address else {"env_vars": {"PYTHONPATH": package_root}},
-        )
+        with _own_stop_handlers_kept():
+            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False, runtime_env={"env_vars": {"PYTHONPATH": package_root}})
+        return
+    failure: list[BaseException] = []
+
+    def connect() -> None:
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        except Exception as exc:  # reported to the main thread, which raises it as ours
+            failure.append(exc)
+
+    fix = ("check --address and that the cluster runs (`ray status` on its head node), raise "
+           "--ray-timeout, or drop --address to start Ray on this machine")
+    attempt = threading.Thread(target=connect, name="relight-ray-connect", daemon=True)
+    ray_worker_log = logging.getLogger("ray._private.worker")
+    ray_worker_log.addFilter(_no_sigterm_notice)  # Ray's notice that it leaves SIGTERM to us
+    attempt.start()
+    attempt.join(timeout_s)
+    if attempt.is_alive():  # abandoned, still trying: the process ends without it
+        raise UsageError(f"no Ray cluster answered at {address} within {timeout_s:g} s", fix=fix)
+    ray_worker_log.removeFilter(_no_sigterm_notice)
+    if failure:
+        text = str(failure[0]).strip() or type(failure[0]).__name__
+        raise UsageError(f"cannot connect to a Ray cluster at {address} ({text.splitlines()[0]})",
+                         fix=fix) from failure[0]
+
+
+def _no_sigterm_notice(record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith("SIGTERM handler is not set")
+
+
+@contextlib.contextmanager
+def _own_stop_handlers_kept():
+    """This process's SIGINT and SIGTERM handlers put back after the block (ray.init replaces
+    SIGTERM's with one that ends the process by sys.exit); a SystemExit raised by Ray's handler
+    inside the block is the SIGTERM that stops the batch."""
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
     try:
-        rows = [
-            {"index": index, "input": str(item.input),
-             "outputs": json.dumps({k: str(v) for k, v in item.outputs.items()}),
-             "mask": "" if item.mask is None else str(item.mask)}
-            for index, item in enumerate(items)
-        ]
-        dataset = ray.data.from_items(rows).map_batches(
-            _RayItemActor,
-            fn_constructor_args=(worker, skip_existing, overwrite),
-            batch_size=1,
-            concurrency=min(workers, len(items)),
-            num_cpus=threads_per_worker,
-            batch_format="numpy",
-        )
-        results = dataset.take_all()
+        yield
+    except SystemExit:
+        raise Stopped(signal.SIGTERM) from None
     finally:
-        if started_here:
-            ray.shutdown()
-    reports: list[ItemReport | None] = [None] * len(items)
-    for row in results:
-        reports[int(row["index"])] = ItemReport(**json.loads(str(row["report"])))
-    missing = [items[i].input for i, r in enumerate(reports) if r is None]
-    if missing:
-        raise RelightError(f"Ray returned no result for {len(missing)} item(s), e.g. {missing[0]}")
-    return reports
+        for signum, handler in previous.items():
+            if on_main_thread and handler is not None:
+                signal.signal(signum, handler)
+
+
+def _ray_dataset(ray, items, worker, workers, threads_per_worker, skip_existing, overwrite):
+    rows = [
+        {"index": index, "input": str(item.input),
+         "outputs": json.dumps({k: str(v) for k, v in item.outputs.items()}),
+         "mask": "" if item.mask is None else str(item.mask)}
+        for index, item in enumerate(items)
+    ]
+    return ray.data.from_items(rows).map_batches(
+        _RayItemActor,
+        fn_constructor_args=(worker, skip_existing, overwrite),
+        batch_size=1,
+        concurrency=min(workers, len(items)),
+        num_cpus=threads_per_worker,
+        batch_format="numpy",
+    )
 
 
 class _RayItemActor:

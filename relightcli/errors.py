@@ -1,7 +1,8 @@
 """Project exceptions. Each carries the exit code the CLI maps it to (the only place that exits).
 
 Exit codes: 0 all ok, 1 some items failed, 2 usage, 3 missing model or dependency,
-4 unreadable input.
+4 unreadable input; a signal stops a run with 128 + its number: 130 SIGINT (Ctrl-C), 143 SIGTERM
+(docker stop) (the CLI's handlers, batch.Stopped).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ class RelightError(Exception):
     exit_code = EXIT_ITEMS_FAILED
 
     def __init__(self, message: str, path: str | Path | None = None, fix: str | None = None):
+        self.message = message  # without the path and the fix: a caller may restate it
         self.path = None if path is None else str(path)
         self.fix = fix
         text = message if self.path is None else f"{self.path}: {message}"
@@ -38,6 +40,13 @@ class UsageError(RelightError):
 
 class OutputError(UsageError):
     """The output cannot be written (unwritable directory, would overwrite an input, exists)."""
+
+
+class WriteError(RelightError):
+    """Writing an output failed part-way (disk full, quota, I/O error): not a usage mistake,
+    the item fails (exit 1) and nothing half-written is left."""
+
+    exit_code = EXIT_ITEMS_FAILED
 
 
 class MissingDependencyError(RelightError):

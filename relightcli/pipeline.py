@@ -181,16 +181,14 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
     """Run the planned stages on one input and write its outputs. Raises project errors.
 
     env: one environment map, or a list of them: the lighting stages run once per map. With
-    options.turntable = N, they run N times under the (one) map turned 360/N degrees apart.
-    Outputs keyed 'relit#003' / 'shading#003' / 'preview#003' receive lighting 3."""
-    from relightcli.io.envmap import rotate_envmap
-
+    options.turntable = N, they run N times under the (one) map turned 360/N degrees apart
+    (`turntable_lightings`: one turned map at a time). Outputs keyed 'relit#003' /
+    'shading#003' / 'preview#003' receive lighting 3."""
     report = ItemReport(str(item.input))
     with _timed(report, "load"):
         image, mask, mask_source = read_input(item.input, item.mask, options)
-    lightings = list(env) if isinstance(env, (list, tuple)) else [env]
-    if options.turntable:
-        lightings = [rotate_envmap(lightings[0], 360.0 * k / options.turntable) for k in range(options.turntable)]
+    maps = list(env) if isinstance(env, (list, tuple)) else [env]
+    lightings = turntable_lightings(maps[0], options.turntable) if options.turntable else maps
 
     def write_lit_layers(k, frame):
         with _timed(report, "write"):
@@ -200,7 +198,7 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
                     write_layer(name, path, frame, options)
                     report.outputs[key] = str(path)
 
-    frame, plan = run_stages(image.rgb, mask, lightings[0], options, report, models, lightings=lightings,
+    frame, plan = run_stages(image.rgb, mask, maps[0], options, report, models, lightings=lightings,
                              on_lighting=write_lit_layers,
                              mask_source=mask_source)
     report.details["plan"] = plan.as_dict()
@@ -213,6 +211,16 @@ def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemR
     return report
 
 
+def turntable_lightings(env: np.ndarray, frames: int):
+    """The (h, 2h, 3) map `env` turned 360/frames degrees apart, frames 0, 1, ..., each made
+    when it is asked for: a run keeps one or two turned maps, never all of them (300 frames of a
+    1024 x 512 map would take 1.9 GB, 100000 more memory than a machine has)."""
+    from relightcli.io.envmap import rotate_envmap
+
+    for k in range(frames):
+        yield rotate_envmap(env, 360.0 * k / frames)
+
+
 def read_input(path: Path, own_mask: Path | None, options: RelightOptions):
     """(the photo's Image, its (H, W) person mask or None, the report's word for where the mask
     came from) for the photo at `path`; `own_mask`: its own NAME_mask file (batch.pair_masks)."""
@@ -223,7 +231,11 @@ def read_input(path: Path, own_mask: Path | None, options: RelightOptions):
 
 def photo_and_mask(image, path, own_mask: Path | None, options: RelightOptions):
     """read_input for a decoded Image (a file's, or an array's: relightcli.api)."""
+    from relightcli.io.images import refuse_non_finite
+
     check_usable_size(image, path)
+    refuse_non_finite(image.rgb, path, "the photo",
+                      "save it with finite values (NaN and Inf replaced, e.g. by 0), or as PNG/JPEG")
     mask_path, mask_source = _mask_file(options.mask_path, own_mask)
     return image, input_mask(image, mask_path, options.max_pixels, path), mask_source
 
@@ -234,8 +246,9 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
 
     mask: the input's (H, W) person mask or None; mask_source says where it came from (the
     report's "mask" note; default "alpha channel").
-    lightings: environments to relight under in turn (default [env]); the stages that do not
-    depend on the lighting run once, the others once per environment, each followed by
+    lightings: environments to relight under in turn (default [env]), any iterable, taken one
+    at a time (a turntable's are made as they are asked for). The stages that do not depend on
+    the lighting run once, the others once per environment, each followed by
     on_lighting(index, frame). Stage times add up over the lightings."""
     from relightcli.stages import LIGHTING_STAGES, STAGES
     from relightcli.stages.frame import Frame, Models
@@ -318,7 +331,7 @@ def _mask_file(option_path, own_path):
 def input_mask(image, mask_path, max_pixels, input_path):
     """The person mask from the file `mask_path` (--mask or the photo's own NAME_mask file)
     or else the input's alpha, (H, W) float32 in [0, 1], or None."""
-    from relightcli.io.images import read_image
+    from relightcli.io.images import read_image, refuse_non_finite
 
     if mask_path is not None:
         mask_image = read_image(mask_path, max_pixels=max_pixels, srgb=False)
@@ -332,6 +345,8 @@ def input_mask(image, mask_path, max_pixels, input_path):
         # A grey mask image is data; a mask given as an alpha channel wins when it has one.
         has_alpha = mask_image.alpha is not None and mask_image.alpha.min() < 1.0
         values = mask_image.alpha if has_alpha else mask_image.rgb[..., 0]
+        refuse_non_finite(values, mask_path, "the mask",
+                          "save the mask with values in 0..1 (1: the person, 0: the background)")
         return values.clip(0.0, 1.0).astype(np.float32, copy=False)
     if image.alpha is not None and float(image.alpha.min()) < 1.0:
         if not (image.alpha > 0.5).any():  # the crop keeps alpha > 0.5 as the person
@@ -346,7 +361,7 @@ def input_mask(image, mask_path, max_pixels, input_path):
 def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
     """Write one output layer of a finished frame (atomic writes)."""
     from relightcli.io.images import write_image
-    from relightcli.stages.compose import fits_half, layer_image, preview_tiles
+    from relightcli.stages.compose import layer_image, preview_tiles
 
     suffix = Path(path).suffix.lower()
     if name == "light":
@@ -364,7 +379,7 @@ def write_layer(name: str, path: Path, frame, options: RelightOptions) -> None:
         array, alpha, srgb = layer_image(name, frame, options, hdr=hdr)
         bits = 8 if name in ("mask", "relit") else 16
         write_image(path, array, alpha, bits=None if hdr or suffix in (".jpg", ".jpeg") else bits, srgb=srgb,
-                    half=fits_half(array) and name != "body_depth")  # depth keeps float32's precision
+                    half=name != "body_depth")  # EXR: half where it keeps the values; depth float32
 
 
 @contextmanager

@@ -4,6 +4,12 @@ recorded per item; reports come back in input order."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +17,8 @@ import pytest
 
 from relightcli.cli import main
 from relightcli.io.images import write_image
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def make_folder(root: Path, count: int, bad: int = 1) -> Path:
@@ -74,6 +82,100 @@ def test_ray_engine_without_ray_fails_clearly(tmp_path, capsys, monkeypatch):
     code = main([str(folder), "--hdr", str(tmp_path / "env.hdr"), "-o", str(tmp_path / "o"), "--outputs", "mask", "--engine", "ray"])
     assert code == 3
     assert "relightcli[ray]" in capsys.readouterr().err
+
+
+def run_ray_cli(tmp_path, *options: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """The CLI in a process of its own (a connection attempt left running stays there)."""
+    folder = make_folder(tmp_path, 2, bad=0)
+    env = {key: value for key, value in os.environ.items() if key != "RAY_ADDRESS"}
+    return subprocess.run([sys.executable, "-m", "relightcli", str(folder), "--hdr", str(tmp_path / "env.hdr"),
+                           "-o", str(tmp_path / "out"), "--outputs", "mask", "--engine", "ray", *options],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def test_an_unreachable_ray_cluster_fails_clearly_within_the_timeout(tmp_path):
+    """ray.init retried an address where nothing answers for minutes, silently."""
+    pytest.importorskip("ray.data")
+    done = run_ray_cli(tmp_path, "--address", "127.0.0.1:1", "--ray-timeout", "2")
+    assert done.returncode == 2, done.stderr
+    assert "no Ray cluster answered at 127.0.0.1:1 within 2 s" in done.stderr
+    assert "--ray-timeout" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_ray_address_auto_without_a_cluster_fails_clearly(tmp_path):
+    pytest.importorskip("ray.data")
+    done = run_ray_cli(tmp_path, "--address", "auto")
+    assert done.returncode == 2, done.stderr
+    assert "cannot connect to a Ray cluster at auto (" in done.stderr and "Traceback" not in done.stderr
+    assert "SIGTERM handler" not in done.stderr  # Ray's notice: the connection runs in a thread
+
+
+def test_a_ray_client_address_without_ray_client_is_a_missing_dependency(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("ray.data")
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *args: None if name == "grpc" else find_spec(name, *args))
+    folder = make_folder(tmp_path, 1, bad=0)
+    code = main([str(folder), "--hdr", str(tmp_path / "env.hdr"), "-o", str(tmp_path / "o"), "--outputs", "mask",
+                 "--engine", "ray", "--address", "ray://127.0.0.1:10001"])
+    err = capsys.readouterr().err
+    assert code == 3
+    assert "ray://127.0.0.1:10001" in err and "pip install 'ray[client]'" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs Linux /proc")
+def test_sigterm_stops_a_ray_batch_with_a_summary(tmp_path):
+    """Ray's own SIGTERM handler used to end the batch by sys.exit: exit 2, no summary."""
+    pytest.importorskip("ray.data")
+    from tests.test_batch_stop import make_photos, processes_with, wait_for_new_output
+
+    folder = make_photos(tmp_path, 6)
+    out = tmp_path / "out"
+    marker = uuid.uuid4().hex
+    since_ns = time.time_ns()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "relightcli", str(folder), "--hdr", str(tmp_path / "env.hdr"), "-o", str(out),
+         "--outputs", "mask,albedo", "--albedo", "net", "--resolution", "64", "--engine", "ray",
+         "--workers", "2", "--threads", "2", "--json"],
+        cwd=REPO, env=dict(os.environ, RELIGHT_RAY_STOP_TEST=marker), stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for_new_output(out, since_ns, proc, timeout=300)
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=120)
+        print(f"stopped in {time.monotonic() - sent:.2f} s")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143, stderr
+    report = json.loads(stdout)
+    assert report["failed"] == 0 and report["ok"] + report["stopped"] == 6 and report["stopped"] > 0
+    ok = {Path(item["input"]).stem for item in report["items"] if not item["error"]}
+    written = {f"{stem}{layer}.png" for stem in ok for layer in ("_mask", "_albedo")}
+    assert {p.name for p in out.iterdir()} == written  # the report matches the disk, no staging left
+    deadline = time.monotonic() + 60
+    while processes_with(marker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert processes_with(marker) == []
+
+
+def test_more_workers_than_cores_are_warned_about(tmp_path, capsys, monkeypatch):
+    import relightcli.cli
+
+    monkeypatch.setattr(relightcli.cli, "default_threads", lambda: 2)
+    folder = make_folder(tmp_path, 1, bad=0)
+    for workers, warned in (("2", False), ("3", True)):
+        code = main([str(folder), "--hdr", str(tmp_path / "env.hdr"), "-o", str(tmp_path / f"o{workers}"),
+                     "--outputs", "mask", "--workers", workers])
+        err = capsys.readouterr().err
+        assert code == 0
+        assert ("--workers 3 is more than the 2 core(s) available" in err) == warned, err
+        assert ("up to ~750 MB" in err) == warned
 
 
 def test_address_without_ray_engine_is_usage_error(tmp_path):

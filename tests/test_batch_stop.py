@@ -212,22 +212,3 @@ def test_skip_existing_completes_an_item_missing_some_layers(tmp_path, capsys, w
     assert items["p000"]["skipped"]
     assert items["p001"]["kept"] == ["mask", "albedo"]
     assert items["p002"]["kept"] == ["mask", "light"]
-
-
-def test_a_pool_that_cannot_start_its_workers_is_a_clear_error(tmp_path, capsys, monkeypatch):
-    """EAGAIN from fork/spawn (a process limit) used to end in a traceback."""
-    from relightcli import batch
-    from relightcli.cli import main
-    from tests.test_batch import make_folder
-
-    class NoProcesses(batch.ProcessPoolExecutor):
-        def submit(self, *args, **kwargs):
-            raise BlockingIOError(11, "Resource temporarily unavailable")
-
-    monkeypatch.setattr(batch, "ProcessPoolExecutor", NoProcesses)
-    folder = make_folder(tmp_path, 2, bad=0)
-    code = main([str(folder), "--hdr", str(tmp_path / "env.hdr"), "-o", str(tmp_path / "out"),
-                 "--outputs", "mask", "--workers", "2"])
-    err = capsys.readouterr().err
-    assert code == 1
-    assert "could not start 2 worker processes" in err and "--workers 1" in err and "Traceback" not in err

@@ -14,6 +14,8 @@ from relightcli import __version__
 from relightcli.cli import main
 from relightcli.io.images import write_image
 
+from exr_testing import write_float_exr
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -262,8 +264,7 @@ def test_environment_with_nan_inf_negative_texels_warns(tmp_path, capsys):
     env[0, 0] = np.nan
     env[1, 1] = np.inf
     env[2, 2] = -1.0
-    path = tmp_path / "nan.exr"
-    write_image(path, env, half=False)
+    path = write_float_exr(tmp_path / "nan.exr", env)  # write_image would repair the texels
     code = main([str(photo), "--hdr", str(path), "-o", str(tmp_path / "o.png"), "--outputs", "mask"])
     assert code == 0
     err = capsys.readouterr().err

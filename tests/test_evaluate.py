@@ -20,6 +20,8 @@ from relightcli.evaluate import (
 )
 from relightcli.io.images import linear_to_srgb, write_image
 
+from exr_testing import write_float_exr
+
 
 def make_scene(folder: Path, seed: int = 0, shading_level: float = 5.0) -> Path:
     rng = np.random.default_rng(seed)
@@ -194,7 +196,7 @@ def test_a_malformed_scene_is_skipped_with_its_reason_and_the_json_stays_json(tm
     nan = make_scene(tmp_path / "c_nan", seed=3)
     albedo = np.full((48, 40, 3), 0.5, np.float32)
     albedo[20, 20] = np.nan
-    write_image(nan / "gt_albedo.exr", albedo, half=False)
+    write_float_exr(nan / "gt_albedo.exr", albedo)  # write_image would write the NaN as 0
     size = make_scene(tmp_path / "d_size", seed=4)
     write_image(size / "input.png", np.full((36, 36, 3), 0.3, np.float32))
     code = main(["eval", str(tmp_path), "--method", "sh9", "--use-gt-mask", "--json"])

@@ -11,6 +11,7 @@ import contextlib
 import json
 import os
 import re
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -26,6 +27,9 @@ SUBCOMMANDS = ("shade", "info", "eval")
 # work or an out-of-memory crash deep inside OpenCV.
 MAX_SPP = 4096  # 4096 samples of a 512 x 512 crop are already about a billion rays
 RESOLUTION_RANGE = (16, 2048)
+# 3600 frames turn the map a tenth of a degree a frame, finer than a video needs, and take about
+# an hour at 512 (a frame ~1 s on 2 cores, made one at a time in constant memory): more is a typo
+MAX_TURNTABLE = 3600
 
 DESCRIPTION = """\
 Relight a photo of a person under an HDR environment map (ECCV 2022, "Geometry-aware
@@ -42,14 +46,33 @@ single-image full-body human relighting"), on the CPU.
 
 EXIT_CODES = """\
 exit codes: 0 all ok, 1 some items failed, 2 usage, 3 missing model or dependency,
-4 unreadable input."""
+4 unreadable input, 130 stopped by Ctrl-C (SIGINT), 143 stopped by SIGTERM (docker stop)."""
+
+
+# Peak memory of one batch worker (the four networks and one item; measured about 500 MB),
+# with some headroom: the default --workers keeps this much memory for each.
+WORKER_MEMORY = 600 * 2**20
 
 
 def default_threads() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+    """The cores this process may use: its CPU affinity (--cpuset-cpus, taskset), lowered to
+    its cgroup's CPU quota (docker --cpus) rounded up."""
+    from relightcli.cli.limits import read_limits
+
+    return read_limits().cores
+
+
+def default_workers(threads: int, memory_bytes: int | None = None) -> int:
+    """Batch processes for `threads` cores: one per core, but no more than the memory holds at
+    WORKER_MEMORY each. memory_bytes: the container's memory limit or the RAM, whichever is
+    lower (default: read them)."""
+    if memory_bytes is None:
+        from relightcli.cli.limits import read_limits
+
+        memory_bytes = read_limits().usable_memory
+    if memory_bytes is None:
+        return max(1, threads)
+    return max(1, min(threads, memory_bytes // WORKER_MEMORY))
 
 
 def add_common_arguments(parser: argparse.ArgumentParser, *, writes: bool = True) -> None:
@@ -181,21 +204,24 @@ def relight_parser() -> argparse.ArgumentParser:
                         help="rotate the environment about +Y, counter-clockwise seen from above")
     parser.add_argument("--exposure", type=float, default=0.0, metavar="EV",
                         help="scale the environment by 2**EV")
-    parser.add_argument("--turntable", type=_positive_int, default=0, metavar="N",
+    parser.add_argument("--turntable", type=int_in_range(1, MAX_TURNTABLE), default=0, metavar="N",
                         help="N frames with the environment turned 360/N degrees apart, written as "
-                             "numbered images (photo_turn000.png, ...); the networks and the mesh run once")
+                             f"numbered images (photo_turn000.png, ...), 1..{MAX_TURNTABLE}; the networks "
+                             "and the mesh run once, the frames one at a time")
     parser.add_argument("--background", type=_background, default="keep", metavar="MODE",
                         help="keep (original photo), env (the environment seen by a camera), "
                              "transparent (RGBA), or a colour like '#808080'")
     add_pipeline_arguments(parser)
     parser.add_argument("--workers", type=_positive_int, metavar="N",
-                        help="processes for folder/many inputs (default: one per core; threads are "
-                             "split so workers x threads <= cores)")
+                        help="processes for folder/many inputs (default: one per core, no more than "
+                             "the memory holds at ~600 MB each; threads are split so workers x threads <= cores)")
     parser.add_argument("--engine", choices=("local", "ray"), default="local",
                         help="local process pool (default) or Ray Data (needs the 'ray' extra)")
     parser.add_argument("--address", metavar="ADDR",
                         help="with --engine ray: an existing cluster ('auto', 'ray://head:10001'); "
                              "default: start a local Ray instance")
+    parser.add_argument("--ray-timeout", type=_positive_float, default=30.0, metavar="SECONDS",
+                        help="with --address: how long the cluster may take to answer (default 30)")
     parser.add_argument("--max-pixels", type=_positive_int, default=100_000_000, metavar="N",
                         help="refuse images larger than N pixels before decoding (default 100 MP)")
     add_common_arguments(parser)
@@ -237,6 +263,104 @@ def shade_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The `relight` command. SIGTERM stops it cleanly from here on (exit 143, temporary files
+    removed on the way out): a batch hands the signal to its own handler, every other phase
+    unwinds through `Terminated`. argv None: the program's own arguments, and a stopped run
+    then ends the process here (`_exit_stopped`)."""
+    try:
+        with _sigterm_unwinds():
+            code = _run_command(argv)
+    except Terminated as exc:  # landed outside _run_command's own handlers (while reporting)
+        print("relight: stopped by SIGTERM", file=sys.stderr)
+        code = exc.exit_code
+    if argv is None and code in (128 + signal.SIGINT, 128 + signal.SIGTERM):
+        _exit_stopped(code)
+    return code
+
+
+def _exit_stopped(code: int) -> None:
+    """End a stopped process without the interpreter's teardown of its ~1,100 modules (trimesh
+    brings networkx and scipy): measured 0.5-0.8 s on 2 cores, which `docker stop` would wait
+    for. Everything of the run is done by now (the batch removed its staging files and its
+    workers); the atexit callbacks still run and the output streams are flushed."""
+    import atexit
+
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM outside a batch (`docker stop`, a service manager). A KeyboardInterrupt, so it
+    unwinds like Ctrl-C through every `finally`; signum and exit_code as batch.Stopped has them."""
+
+    reports = None
+
+    def __init__(self, signum: int = signal.SIGTERM):
+        self.signum = int(signum)
+        self.exit_code = 128 + self.signum
+        super().__init__(signal.Signals(self.signum).name)
+
+
+@contextlib.contextmanager
+def _sigterm_unwinds():
+    """SIGTERM raises Terminated in the main thread while the block runs. Also unblocks SIGTERM:
+    a signal mask survives exec, and one inherited blocked would hold `docker stop` until the
+    end (a SIGTERM already pending then arrives here, before any work).
+
+    A stop raised while a finalizer runs (a `__del__` the garbage collector calls) is swallowed
+    by Python ("Exception ignored in ...") and the run would go on until `docker stop` kills it
+    10 s later: such a stop (Terminated, batch.Stopped, Ctrl-C) is sent again from a helper
+    thread, to land in ordinary code a moment later."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        if _resent_if_importing(signum, frame):
+            return
+        signal.signal(signum, signal.SIG_IGN)  # once: a second SIGTERM must not cut the clean-up short
+        raise Terminated(signum)
+
+    def resend_swallowed_stop(unraisable):  # sys.unraisablehook
+        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return previous_hook(unraisable)
+        signum = getattr(unraisable.exc_value, "signum", signal.SIGINT)
+        if isinstance(unraisable.exc_value, Terminated):
+            signal.signal(signum, stop)  # it ignored further ones: this one did not take
+        _resend_soon(signum)  # sent at once it would land in this hook, and be swallowed again
+
+    previous, previous_hook = signal.signal(signal.SIGTERM, stop), sys.unraisablehook
+    sys.unraisablehook = resend_swallowed_stop
+    try:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        sys.unraisablehook = previous_hook
+
+
+def _resent_if_importing(signum: int, frame) -> bool:
+    """True, and the signal sent again a moment later, when the handler interrupted a module
+    being imported: libraries guard optional imports with `except BaseException` (trimesh, in
+    every item's first use), which would swallow the stop and let the run go on to the end."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib._bootstrap"):
+            _resend_soon(signum)
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _resend_soon(signum: int) -> None:
+    """Send `signum` to this process again in 50 ms, from a helper thread."""
+    resend = threading.Timer(0.05, os.kill, args=(os.getpid(), signum))
+    resend.daemon = True
+    resend.start()
+
+
+def _run_command(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     command = argv[0] if argv and argv[0] in SUBCOMMANDS else None
     try:
@@ -262,20 +386,31 @@ def main(argv: list[str] | None = None) -> int:
     except RelightError as exc:
         print(f"relight: error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM during a batch (batch.Stopped)
-        print("relight: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (batch.Stopped in a batch, else Terminated)
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print("relight: interrupted" if signum == signal.SIGINT else
+              f"relight: stopped by {signal.Signals(signum).name}", file=sys.stderr)
         return getattr(exc, "exit_code", 130)
 
 
 def _limit_to_cores(args) -> None:
     """Lower --threads to the cores this process may use, with a warning: more only thrash
-    the caches, and the default --workers follows --threads (64 processes on 2 cores).
-    Not with --address: the threads then run on the Ray cluster's nodes, not here."""
+    the caches, and the default --workers follows --threads (64 processes on 2 cores). Warn
+    about --workers above the cores too (kept: the user may know the memory is there).
+    Not with --address: the threads and workers then run on the Ray cluster's nodes, not here."""
     cores = default_threads()
     if args.threads is not None and args.threads > cores and not getattr(args, "address", None):
         print(f"relight: warning: --threads {args.threads} is more than the {cores} core(s) "
               f"available; using {cores}", file=sys.stderr)
         args.threads = cores
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers > cores and not getattr(args, "address", None):
+        # Each worker process holds its own networks: measured ~330 MB between items and up to
+        # ~750 MB while relighting (the example photo, --resolution 512); the cores are shared
+        print(f"relight: warning: --workers {workers} is more than the {cores} core(s) available: "
+              f"each worker takes ~330 MB, up to ~750 MB while it relights at --resolution 512 "
+              f"({workers} workers: up to ~{workers * 0.75:.1f} GB), and they share the {cores} "
+              "core(s): fewer are as fast", file=sys.stderr)
 
 
 def _refuse_alpha_loss(items, background: str) -> None:
@@ -299,20 +434,12 @@ def run_relight(args) -> int:
     if args.skip_existing and args.overwrite:
         raise UsageError("--skip-existing and --overwrite contradict each other", fix="pass one of them")
     threads = args.threads or default_threads()
-    lightings = _lighting_names(args)
-    exclude = [*map(Path, args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
-    found, masks = batch.pair_masks(batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude))
-    if masks and args.mask:
-        photo, mask = next(iter(masks.items()))
-        raise UsageError(f"--mask and a photo's own mask file ({mask} for {photo}) both give masks",
-                         fix="drop --mask, or move the NAME_mask files away")
-    items = batch.plan_items(found, args.output, args.outputs, lightings=lightings,
-                             read_only=[*args.hdr] + ([args.mask] if args.mask else []), masks=masks)
-    _refuse_alpha_loss(items, args.background)
-    batch.prepare_output_dirs(items)
+    items, refused = _plan_relight(args)
+    runnable = [item for index, item in enumerate(items) if index not in refused]
+    batch.prepare_output_dirs(runnable)
     env, env_warnings = _load_environment(args)
     # One process per core by default; threads are split so workers x threads <= cores.
-    workers = min(args.workers or threads, len(items))
+    workers = max(1, min(args.workers or default_workers(threads), len(runnable)))
     options = RelightOptions(
         outputs=args.outputs, method=args.method, albedo=args.albedo,
         mask_path=None if args.mask is None else Path(args.mask),
@@ -324,15 +451,20 @@ def run_relight(args) -> int:
 
     worker = RelightWorker(env, options)
     progress = _Progress(len(items), enabled=args.engine == "local" and sys.stderr.isatty() and not args.json)
+    for index in refused:
+        progress.step(items[index].input)
     try:
         with _signals_stop_batch():
-            if args.engine == "ray":
+            if not runnable:
+                reports = []
+            elif args.engine == "ray":
                 reports = batch.run_items_ray(
-                    items, worker, workers=workers, threads_per_worker=options.threads,
-                    address=args.address, skip_existing=args.skip_existing, overwrite=args.overwrite)
+                    runnable, worker, workers=workers, threads_per_worker=options.threads,
+                    address=args.address, skip_existing=args.skip_existing, overwrite=args.overwrite,
+                    timeout_s=args.ray_timeout)
             else:
                 reports = batch.run_items(
-                    items, worker, workers=workers,
+                    runnable, worker, workers=workers,
                     skip_existing=args.skip_existing, overwrite=args.overwrite, on_done=progress.step)
     except batch.Stopped as stopped:
         if stopped.reports is None:  # stopped before any item ran, or by Ray: nothing to report
@@ -340,6 +472,7 @@ def run_relight(args) -> int:
         reports = stopped.reports  # finished items, the rest marked stopped; exit_code: 130 / 143
     finally:
         progress.close()
+    reports = _with_refused(items, refused, reports)
     for report in reports:
         report.warnings[:0] = env_warnings
     summary = batch.summary(reports)
@@ -350,18 +483,60 @@ def run_relight(args) -> int:
     return batch.exit_code(reports)
 
 
+def _plan_relight(args) -> tuple[list, dict]:
+    """Every item of the run with its output paths, and {index: error} for the items refused
+    before any work (`batch.unusable_items`: each fails alone, the others run). Raises for what
+    concerns the whole run: a --hdr or --mask that cannot be opened, colliding outputs, ..."""
+    import warnings
+
+    from relightcli import batch
+    from relightcli.errors import InputError, RelightWarning
+
+    lightings = _lighting_names(args)
+    for option, path in [("--hdr", path) for path in args.hdr] + ([("--mask", args.mask)] if args.mask else []):
+        if (error := batch.path_error(Path(path))) is not None:  # a symlink loop, a name too long
+            raise InputError(error.message, path=path, fix=f"{error.fix}, or pass another {option}")
+    exclude = [*map(Path, args.hdr), Path(args.output)] + ([Path(args.mask)] if args.mask else [])
+    with warnings.catch_warnings(record=True) as caught:  # sub-folders that cannot be read
+        warnings.simplefilter("always", RelightWarning)
+        found, masks = batch.pair_masks(batch.collect_inputs(args.inputs, recursive=args.recursive, exclude=exclude))
+    for warning in caught:
+        if issubclass(warning.category, RelightWarning):
+            print(f"relight: warning: {warning.message}", file=sys.stderr)
+    if masks and args.mask:
+        photo, mask = next(iter(masks.items()))
+        raise UsageError(f"--mask and a photo's own mask file ({mask} for {photo}) both give masks",
+                         fix="drop --mask, or move the NAME_mask files away")
+    items = batch.plan_items(found, args.output, args.outputs, lightings=lightings,
+                             read_only=[*args.hdr] + ([args.mask] if args.mask else []), masks=masks,
+                             skip_existing=args.skip_existing)
+    _refuse_alpha_loss(items, args.background)
+    return items, batch.unusable_items(items)
+
+
+def _with_refused(items, refused: dict, reports: list) -> list:
+    """The reports of every item in input order: those of the items that ran, and for each item
+    refused before the run (`batch.unusable_items`: {index: error}) a failed one."""
+    from relightcli.batch import ItemReport
+
+    ran = iter(reports)
+    return [ItemReport(str(item.input), error=str(refused[index]), exit_code=refused[index].exit_code)
+            if index in refused else next(ran) for index, item in enumerate(items)]
+
+
 @contextlib.contextmanager
 def _signals_stop_batch():
     """While a batch runs, SIGINT and SIGTERM raise batch.Stopped in the main thread, so the
     batch can kill its workers, drop unfinished items and hand back what finished (SIGTERM,
     from `docker stop` or a service manager, would otherwise end this process on the spot and
-    leave the workers running)."""
+    leave the workers running). Not inside an import (`_resent_if_importing`)."""
     import signal
 
     from relightcli.batch import Stopped
 
     def stop(signum, frame):
-        raise Stopped(signum)
+        if not _resent_if_importing(signum, frame):
+            raise Stopped(signum)
 
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -385,9 +560,14 @@ def run_eval(args) -> int:
         resolution=args.resolution)
     scenes = evaluate.find_scenes(args.dataset)
     progress = _Progress(len(scenes), enabled=sys.stderr.isatty() and not args.json)
-    result = evaluate.evaluate(
-        scenes, lambda scene: predict_scene(scene, options, use_gt_mask=args.use_gt_mask),
-        args.method, on_done=lambda entry: progress.step(entry["scene"]))
+
+    def predict(scene):
+        try:
+            return predict_scene(scene, options, use_gt_mask=args.use_gt_mask)
+        except RelightError as exc:
+            raise _in_eval_terms(exc, scene, args.use_gt_mask) from exc
+
+    result = evaluate.evaluate(scenes, predict, args.method, on_done=lambda entry: progress.step(entry["scene"]))
     result["albedo_source"] = args.albedo
     progress.close()
     if args.json:
@@ -404,6 +584,19 @@ def run_eval(args) -> int:
     return codes.pop() if len(failed) == len(result["per_scene"]) and len(codes) == 1 else 1
 
 
+def _in_eval_terms(error: RelightError, scene, use_gt_mask: bool) -> RelightError:
+    """A pipeline error that tells a `relight` user to check or pass --mask, told in `relight
+    eval`'s terms (eval has no --mask): the person mask is the scene's gt_mask.png with
+    --use-gt-mask, else predicted from its input.png."""
+    if "--mask" not in str(error):
+        return error
+    if use_gt_mask:
+        path, fix = scene.folder / "gt_mask.png", "the scene's true mask marks no person: regenerate the scene"
+    else:
+        path, fix = scene.input_path, "pass --use-gt-mask to use the scene's gt_mask.png instead"
+    return type(error)(error.message, path=path, fix=fix)
+
+
 def _lighting_names(args) -> list[str]:
     """Names of the lightings that get a file each: the turntable's frames, or the maps'
     names when there are several maps; none for one map."""
@@ -411,7 +604,8 @@ def _lighting_names(args) -> list[str]:
         if len(args.hdr) > 1:
             raise UsageError("--turntable turns one map; several --hdr were given",
                              fix="pass one --hdr with --turntable, or drop --turntable")
-        return [f"turn{k:03d}" for k in range(args.turntable)]
+        digits = max(3, len(str(args.turntable - 1)))  # names that sort in frame order
+        return [f"turn{k:0{digits}d}" for k in range(args.turntable)]
     if len(args.hdr) == 1:
         return []
     names = [Path(path).stem for path in args.hdr]
@@ -448,14 +642,19 @@ def run_shade(args) -> int:
 
 
 def run_info(args) -> dict:
-    import onnxruntime
-
+    from relightcli.cli.limits import read_limits
     from relightcli.nets.manifest import list_models, models_dir
+    from relightcli.nets.session import import_onnxruntime
 
+    onnxruntime = import_onnxruntime()
     models = [
         {"name": m.name, "file": str(m.path), "present": m.present, "sha256_ok": m.sha256_ok}
         for m in list_models(verify=True)
     ]
+    limits = read_limits()
+    threads = args.threads or limits.cores
+    mib = {name: None if value is None else value // 2**20
+           for name, value in (("limit", limits.memory_bytes), ("ram", limits.physical_bytes))}
     return {
         "version": __version__,
         "python": sys.version.split()[0],
@@ -463,7 +662,12 @@ def run_info(args) -> dict:
         "models": models,
         "onnxruntime": onnxruntime.__version__,
         "providers": onnxruntime.get_available_providers(),
-        "threads": args.threads or default_threads(),
+        # What the defaults below come from: CPUs in the affinity mask, the cgroup's CPU quota
+        # in cores (None: no quota) and its memory limit (None: none)
+        "cores": {"affinity": limits.affinity_cores, "quota": limits.quota_cores, "cgroup": limits.cgroup},
+        "memory_mib": mib,
+        "threads": threads,
+        "workers": default_workers(threads, limits.usable_memory),
     }
 
 

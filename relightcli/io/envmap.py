@@ -30,6 +30,9 @@ from relightcli.io.images import (
     _open_input,
     _oriented_size,
     LUMINANCE,
+    channel_layout,
+    check_decoded_size,
+    read_channels,
     read_image,
     srgb_to_linear,
 )
@@ -39,6 +42,10 @@ ENVMAP_MAX_PIXELS = 16384 * 8192
 # measurement in tests/io/test_envmap_reduce.py
 ENVMAP_WORKING_HEIGHT = 1024
 _MAX_STOPS = 64
+# The brightest radiance a map may hold (after --exposure): the renderer's float32 estimates
+# of one texel (at most 4 pi L, (4 pi)^2 L with a second bounce) and their squares (variances)
+# then stay below float32's largest value, 3.4e38. Real maps reach ~1e6 (a sun); 2**56 ~ 7.2e16.
+MAX_RADIANCE = 2.0 ** 56
 _FIX_ASPECT = "use an equirectangular (latitude-longitude) map with width = 2 x height"
 # Rec. 709 / sRGB primaries: luminance of linear RGB
 
@@ -154,15 +161,22 @@ def _repair_counts(env):
     }
 
 
-def _repair_texels(env, counts, path):
-    """Set NaN, -Inf and negatives to 0 and +Inf to the largest finite value (0 if none);
-    warn once with the count of each kind."""
+def repair_radiance(env, path=None, stacklevel=2):
+    """Radiance made finite and >= 0: NaN, -Inf and negatives become 0, +Inf the largest finite
+    value (0 if none: a blown-out sun stays the brightest light), with one RelightWarning
+    counting each kind, attributed `stacklevel` frames up. env: (..., 3) array; returns
+    float32 of the same shape (env itself, as float32, when nothing needed repair). The one
+    rule for every map (docs/CLI.md, --hdr), the renderer's too."""
+    env = np.asarray(env, dtype=np.float32)
+    counts = _repair_counts(env)
+    if not any(counts.values()):
+        return env
     finite = np.isfinite(env)
     largest = float(env[finite].max()) if finite.any() else 0.0
     largest = max(largest, 0.0)
     repaired = np.where(np.isposinf(env), np.float32(largest), env)
     repaired = np.where(np.isnan(repaired) | (repaired < 0), np.float32(0.0), repaired)
-    _warn_repaired(counts, largest, path, stacklevel=4)
+    _warn_repaired(counts, largest, path, stacklevel=stacklevel + 1)
     return repaired.astype(np.float32)
 
 
@@ -191,11 +205,7 @@ def validate_envmap(env, path=None):
     if width != 2 * height:
         raise InputError(f"environment map is {width}x{height} (width x height), not 2:1",
                          path=path, fix=_FIX_ASPECT)
-    env = np.array(env, dtype=np.float32)
-    counts = _repair_counts(env)
-    if any(counts.values()):
-        env = _repair_texels(env, counts, path)
-    return env
+    return repair_radiance(np.array(env, dtype=np.float32), path, stacklevel=3)
 
 
 def load_envmap(path, *, rotate_deg=0.0, exposure_ev=0.0, max_pixels=ENVMAP_MAX_PIXELS,
@@ -244,10 +254,12 @@ def envmap_from_array(env, *, rotate_deg=0.0, exposure_ev=0.0, working_height=EN
     `validate_envmap`, area-resampled to at most `working_height` rows, a warning when it is
     all black, turned by `rotate_deg` and scaled by 2 ** `exposure_ev`. env: (H, 2H, 3) linear
     radiance; path: the file it came from, named in messages (None: an array).
-    Returns (h, 2h, 3) float32."""
+    Returns (h, 2h, 3) float32. Raises InputError for a map brighter than MAX_RADIANCE,
+    UsageError when `exposure_ev` would make it so (`check_radiance`)."""
     env = validate_envmap(env, path=path)
     if env.shape[0] > working_height:  # a file read whole (an unusual layout): reduce now
         env = resample_envmap(env, working_height)
+    check_radiance(env, exposure_ev, path)
     if not env.any():
         where = "environment map" if path is None else f"{path}: environment map"
         warnings.warn(f"{where} is all black (no light): the relit person will be black",
@@ -260,12 +272,11 @@ def envmap_from_array(env, *, rotate_deg=0.0, exposure_ev=0.0, working_height=EN
 
 
 def _check_map_header(spec, width, height, path, max_pixels):
-    """Refuse, from the header alone, a map that is not 2:1 or has more than max_pixels."""
-    if width * height > max_pixels:
-        raise InputError(f"environment map is {width}x{height} = {width * height} pixels, more "
-                         f"than the limit of {max_pixels}", path=path,
-                         fix="downscale the map (it is used at most "
-                             f"{2 * ENVMAP_WORKING_HEIGHT}x{ENVMAP_WORKING_HEIGHT})")
+    """Refuse, from the header alone, a map that is not 2:1 or would decode more than
+    max_pixels (its display window, data window or one tile: check_decoded_size)."""
+    check_decoded_size(spec, str(path), max_pixels, what="environment map", raise_limit=None,
+                       fix="downscale the map (it is used at most "
+                           f"{2 * ENVMAP_WORKING_HEIGHT}x{ENVMAP_WORKING_HEIGHT})")
     if width != 2 * height:
         raise InputError(f"environment map is {width}x{height} (width x height), not 2:1",
                          path=path, fix=_FIX_ASPECT)
@@ -277,18 +288,6 @@ def _plain_scanlines(spec) -> bool:
     full = (spec.full_x, spec.full_y, spec.full_width, spec.full_height)
     return (spec.get_int_attribute("Orientation", 1) == 1
             and (spec.x, spec.y, spec.width, spec.height) == full)
-
-
-def _map_channels(spec):
-    """(first, stop) channel range holding R, G, B (1 channel: gray)."""
-    names = [name.upper() for name in spec.channelnames]
-    if spec.nchannels == 1:
-        return None
-    if all(c in names for c in "RGB"):
-        return [names.index(c) for c in "RGB"]
-    if spec.nchannels >= 3:
-        return [0, 1, 2]
-    return [0, 0, 0]  # gray + alpha
 
 
 def read_reduced_envmap(image_input, path, height, band_rows=64):
@@ -307,7 +306,7 @@ def read_reduced_envmap(image_input, path, height, band_rows=64):
     width = 2 * height
     rows = _area_matrix(_cell_edges_t(height), _cell_edges_t(in_height)).tocsc()
     cols = _area_matrix(_cell_edges_u(width), _cell_edges_u(in_width))
-    channels = _map_channels(spec)
+    rgb_index, _ = channel_layout(spec, str(path))
     decode = _is_integer(spec)
     out = np.zeros((height, width * 3), np.float64)
     inf_cover = None
@@ -315,13 +314,8 @@ def read_reduced_envmap(image_input, path, height, band_rows=64):
     largest = 0.0
     for top in range(0, in_height, band_rows):
         bottom = min(top + band_rows, in_height)
-        band = image_input.read_scanlines(0, 0, top, bottom, 0, 0, spec.nchannels, oiio.FLOAT)
-        if band is None or image_input.has_error:
-            reason = image_input.geterror() or "read failed"
-            raise InputError(f"cannot decode pixels (truncated or corrupt?): {reason}",
-                             path=str(path), fix=_FIX_UNREADABLE)
-        band = np.asarray(band, np.float32).reshape(bottom - top, in_width, spec.nchannels)
-        band = np.repeat(band[..., :1], 3, axis=2) if channels is None else band[..., channels]
+        band = read_channels(lambda first, stop: _read_band(image_input, path, top, bottom, first, stop),
+                             rgb_index)
         if decode:
             band = srgb_to_linear(band)
         for kind, n in _repair_counts(band).items():
@@ -345,6 +339,16 @@ def read_reduced_envmap(image_input, path, height, band_rows=64):
     return out.reshape(height, width, 3).astype(np.float32), counts, largest
 
 
+def _read_band(image_input, path, top, bottom, first, stop):
+    """Rows top..bottom - 1, channels first..stop - 1 of an open map, (rows, W, channels) float32."""
+    band = image_input.read_scanlines(0, 0, top, bottom, 0, first, stop, oiio.FLOAT)
+    if band is None or image_input.has_error:
+        reason = image_input.geterror() or "read failed"
+        raise InputError(f"cannot decode pixels (truncated or corrupt?): {reason}",
+                         path=str(path), fix=_FIX_UNREADABLE)
+    return np.asarray(band, np.float32).reshape(bottom - top, image_input.spec().width, stop - first)
+
+
 # --- rotation and exposure --------------------------------------------------------------------
 
 def _finite_number(value, name, fix):
@@ -361,7 +365,8 @@ def rotate_envmap(env, degrees):
     (np.roll) when the turn is a whole number of texels, otherwise linearly interpolated in
     u (periodically), which keeps every row's energy. Rotating by 360 is the identity.
     """
-    degrees = _finite_number(degrees, "rotation", "give the rotation in degrees, e.g. 90")
+    # fmod is exact: any finite angle (1e308 too) becomes its turn within one revolution
+    degrees = math.fmod(_finite_number(degrees, "rotation", "give the rotation in degrees, e.g. 90"), 360.0)
     env = np.asarray(env, dtype=np.float32)
     width = env.shape[1]
     # Counter-clockwise seen from +Y takes +X (phi = pi/2) toward -Z (phi = 0): phi drops by
@@ -378,14 +383,46 @@ def rotate_envmap(env, degrees):
             + frac * np.roll(env, -(low + 1), axis=1)).astype(np.float32)
 
 
-def expose(env, ev):
-    """Scale radiance by 2 ** ev (exposure in stops). (H, W, 3) float32 -> same."""
+def _stops(ev) -> float:
+    """An exposure in stops, checked: finite and within +-_MAX_STOPS."""
     ev = _finite_number(ev, "exposure", "give the exposure in stops, e.g. -1.5")
     if abs(ev) > _MAX_STOPS:
         # beyond this float32 radiance overflows to Inf or underflows to 0
         raise UsageError(f"exposure of {ev:g} stops is outside +-{_MAX_STOPS}",
                          fix="give the exposure in stops, e.g. -1.5")
-    return (np.asarray(env, dtype=np.float32) * np.float32(2.0 ** ev)).astype(np.float32)
+    return ev
+
+
+def expose(env, ev):
+    """Scale radiance by 2 ** ev (exposure in stops). (H, W, 3) float32 -> same. Raises
+    UsageError when the result would be brighter than MAX_RADIANCE (`check_radiance`)."""
+    ev = _stops(ev)
+    env = np.asarray(env, dtype=np.float32)
+    check_radiance(env, ev)
+    return (env * np.float32(2.0 ** ev)).astype(np.float32)
+
+
+def check_radiance(env, exposure_ev=0.0, path=None) -> None:
+    """Refuse a map that, scaled by 2 ** exposure_ev, would be brighter than MAX_RADIANCE (the
+    renderer's float32 sums would overflow: a uniform 3e38 map drew NaN). env: (H, W, 3)
+    radiance, finite (validate_envmap). Raises InputError when the map itself is too bright
+    (exposure_ev 0), else UsageError naming the exposure; each says how many stops to drop."""
+    ev = _stops(exposure_ev)
+    brightest = float(np.max(env)) if np.size(env) else 0.0
+    exposed = brightest * 2.0 ** ev
+    if not exposed > MAX_RADIANCE:
+        return
+    above = f"above {MAX_RADIANCE:.3g}, the most the renderer integrates without overflowing float32"
+    stops = math.ceil(math.log2(exposed / MAX_RADIANCE))  # down to MAX_RADIANCE or below
+    scale = f"scale the map's values down by 2^{stops} or more"
+    if ev == 0:
+        option = f", e.g. relight --exposure -{stops}" if stops <= _MAX_STOPS else ""
+        raise InputError(f"the environment map's brightest texel is {brightest:.3g}, {above}",
+                         path=path, fix=scale + option)
+    where = "the environment map" if path is None else str(path)
+    raise UsageError(f"--exposure {ev:g} takes the brightest texel of {where} from {brightest:.3g} to "
+                     f"{exposed:.3g}, {above}",
+                     fix=f"use --exposure {ev - stops:g} or less" if ev - stops >= -_MAX_STOPS else scale)
 
 
 # --- resampling ---------------------------------------------------------------------------------

@@ -6,29 +6,39 @@ Convention (../shared/DESIGN.md): every image in memory is float32, linear light
 decoded on read, encoded on write; EXR and HDR hold linear values. EXIF orientation is
 applied on read, so row 0 is the top of the picture as a viewer sees it.
 
-Every failure becomes an `InputError` (reading) or an `OutputError` (writing) whose message
+EXR files: the display window is the image. Pixels of the data window outside it are dropped,
+display pixels the data window does not cover are 0 (black, and transparent when the file has
+alpha); only the first subimage (part) at its full resolution (MIP level 0) is read, and only
+the channels used (grey, R G B, alpha). The size limit (`max_pixels`) applies to everything
+that is decoded: the display window, the data window and one tile.
+
+Every failure becomes an `InputError` (reading), an `OutputError` (an output that cannot be
+used, found before writing) or a `WriteError` (writing failed: disk full, ...) whose message
 names the file and says what to do.
 """
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import re
 import secrets
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 
-from relightcli.errors import InputError, OutputError, UsageError
+from relightcli.errors import InputError, OutputError, RelightWarning, UsageError, WriteError
 
 DEFAULT_MAX_PIXELS = 100_000_000
 
 _FIX_UNREADABLE = "check that the file is a complete JPEG, PNG, TIFF, WebP, EXR or HDR image"
-_FIX_TOO_LARGE = "downscale the image, or raise the limit with --max-pixels"
-_FIX_UNWRITABLE = "check free disk space and permissions, or choose another -o"
+_RAISE_LIMIT = "raise the limit with --max-pixels"
+_FIX_TOO_LARGE = f"downscale the image, or {_RAISE_LIMIT}"
+_FIX_UNWRITABLE = "free some disk space, or choose another -o"
 _OUTPUT_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr", ".hdr": "hdr"}
 
 
@@ -168,16 +178,38 @@ def image_size(path: str | Path) -> tuple[int, int]:
         image_input.close()
 
 
-def _check_pixel_count(spec: oiio.ImageSpec, path: str, max_pixels: int) -> None:
+def check_decoded_size(spec: oiio.ImageSpec, path: str, max_pixels: int, *, what: str = "image",
+                       fix: str = _FIX_TOO_LARGE, raise_limit: str | None = _RAISE_LIMIT) -> None:
+    """Refuse, from the header, a file that would decode more than `max_pixels` pixels: its
+    display window (the image), its data window (every stored pixel is decoded before the
+    display window is cut out of it) or one tile (decoded whole, even for a small image).
+    `what` names the file's role in messages, `fix` says what to do about a large image,
+    `raise_limit` how to raise the limit (None: it cannot be). Raises InputError."""
     width, height = _oriented_size(spec)
-    _refuse_pixel_count(width, height, path, max_pixels)
+    _refuse_pixel_count(width, height, path, max_pixels, what=what, fix=fix)
+    full = f"{spec.full_width}x{spec.full_height}{spec.full_x:+d}{spec.full_y:+d}"
+    or_raise = "" if raise_limit is None else f", or {raise_limit}"
+    stored = spec.width * spec.height * max(spec.depth, 1)
+    if stored > max_pixels:
+        raise InputError(
+            f"{what}'s data window (the pixels stored, all decoded) is {spec.width}x{spec.height} = "
+            f"{stored} pixels, more than the limit of {max_pixels}, for a {width}x{height} image",
+            path=path, fix=f"crop the data window to the display window, e.g. oiiotool {path} --crop "
+                           f"{full} -o OUT{or_raise}")
+    tile = spec.tile_width * spec.tile_height * max(spec.tile_depth, 1)
+    if tile > max_pixels:
+        raise InputError(
+            f"{what} is stored in tiles of {spec.tile_width}x{spec.tile_height} = {tile} pixels, "
+            f"more than the limit of {max_pixels} (each tile is decoded whole)", path=path,
+            fix=f"save it as scanlines, e.g. oiiotool {path} --scanline -o OUT{or_raise}")
 
 
-def _refuse_pixel_count(width: int, height: int, path: str, max_pixels: int) -> None:
+def _refuse_pixel_count(width: int, height: int, path: str, max_pixels: int, *,
+                        what: str = "image", fix: str = _FIX_TOO_LARGE) -> None:
     if width * height > max_pixels:
         raise InputError(
-            f"image is {width}x{height} = {width * height} pixels, more than the limit of "
-            f"{max_pixels}", path=path, fix=_FIX_TOO_LARGE)
+            f"{what} is {width}x{height} = {width * height} pixels, more than the limit of "
+            f"{max_pixels}", path=path, fix=fix)
 
 
 def _stored_as_codes(spec: oiio.ImageSpec) -> bool:
@@ -185,24 +217,45 @@ def _stored_as_codes(spec: oiio.ImageSpec) -> bool:
     return spec.format.basetype in (oiio.UINT8, oiio.UINT16) and not spec.channelformats
 
 
-def _read_pixels(image_input: oiio.ImageInput, path: str) -> np.ndarray:
-    """All channels of subimage 0 as (H, W, C): uint8 / uint16 codes as stored when
-    `_stored_as_codes`, else float32 (other integers scaled to [0, 1])."""
+def _read_pixels(image_input: oiio.ImageInput, path: str, channels: list[int]) -> np.ndarray:
+    """The data window of subimage 0, MIP level 0, as (H, W, C) holding `channels` (file
+    channel indices) in that order: uint8 / uint16 codes as stored when `_stored_as_codes`, else
+    float32 (other integers scaled to [0, 1]). Channels the image does not use (an EXR's
+    render passes) are never decoded into memory."""
     spec = image_input.spec()
-    pixels = image_input.read_image(spec.format if _stored_as_codes(spec) else oiio.FLOAT)
+    fmt = spec.format if _stored_as_codes(spec) else oiio.FLOAT
+    return read_channels(
+        lambda first, stop: _checked(image_input.read_image(0, 0, first, stop, fmt), image_input, path),
+        channels)
+
+
+def read_channels(read, channels: list[int]) -> np.ndarray:
+    """`channels` (file channel indices, in this order) as (H, W, C), from `read(first, stop)`:
+    an OIIO read of the file's channels first..stop - 1 as (H, W, stop - first). One read of
+    their span when it is at most 4 channels wide, else one read per channel: memory holds
+    only the channels used, whatever lies between them."""
+    first, stop = min(channels), max(channels) + 1
+    if stop - first <= 4:
+        pixels = read(first, stop)
+        order = [c - first for c in channels]
+        return pixels if order == list(range(pixels.shape[2])) else pixels[:, :, order]
+    return np.concatenate([read(c, c + 1) for c in channels], axis=2)
+
+
+def _checked(pixels, image_input: oiio.ImageInput, path: str) -> np.ndarray:
+    """What an OIIO read returned, as (H, W, C); InputError when the read failed."""
     # JPEG reports a truncated stream only through has_error, with pixels returned
     if pixels is None or image_input.has_error:
         reason = image_input.geterror() or oiio.geterror() or "read failed"
         raise InputError(f"cannot decode pixels (truncated or corrupt?): {reason}",
                          path=path, fix=_FIX_UNREADABLE)
     pixels = np.asarray(pixels)
-    if pixels.ndim == 2:
-        pixels = pixels[:, :, None]
-    return pixels
+    return pixels[:, :, None] if pixels.ndim == 2 else pixels
 
 
 def _to_display_window(pixels: np.ndarray, spec: oiio.ImageSpec) -> np.ndarray:
-    """Place an EXR data window inside its display window (zeros outside)."""
+    """The display window of an EXR (the image) cut from its data window (the pixels stored):
+    stored pixels outside it are dropped, display pixels with none stored are 0."""
     full_w, full_h = spec.full_width, spec.full_height
     if (spec.x, spec.y, spec.width, spec.height) == (spec.full_x, spec.full_y, full_w, full_h):
         return pixels
@@ -215,24 +268,35 @@ def _to_display_window(pixels: np.ndarray, spec: oiio.ImageSpec) -> np.ndarray:
     return canvas
 
 
-def _split_channels(pixels: np.ndarray, spec: oiio.ImageSpec, path: str):
-    """(rgb (H, W, 3), alpha (H, W) or None) from gray, gray+alpha, RGB, RGBA or named
-    R, G, B(, A) channels among more."""
+def channel_layout(spec: oiio.ImageSpec, path: str) -> tuple[list[int], int | None]:
+    """(the file's channel indices of R, G, B, the alpha channel's index or None) for gray,
+    gray+alpha, RGB, RGBA or named R, G, B(, A) channels among more (gray: [0, 0, 0])."""
     names = [name.upper() for name in spec.channelnames]
-    count = pixels.shape[2]
+    count = spec.nchannels
     if count == 1:
-        return np.repeat(pixels, 3, axis=2), None
+        return [0, 0, 0], None
     if count == 2:
-        return np.repeat(pixels[:, :, :1], 3, axis=2), pixels[:, :, 1]
+        return [0, 0, 0], 1
     named_rgb = all(c in names for c in "RGB")
     if count in (3, 4) or named_rgb:
         rgb_index = [names.index(c) for c in "RGB"] if named_rgb else [0, 1, 2]
         alpha_index = spec.alpha_channel if spec.alpha_channel >= 0 else (3 if count == 4 else None)
-        alpha = None if alpha_index is None else pixels[:, :, alpha_index]
-        rgb = pixels[:, :, :3] if rgb_index == [0, 1, 2] else pixels[:, :, rgb_index]  # a view, no copy
-        return rgb, alpha
+        return rgb_index, alpha_index
     raise InputError(f"unsupported channel layout: {count} channels {spec.channelnames}",
                      path=path, fix="save the image as gray, RGB or RGBA")
+
+
+def _read_rgb_alpha(image_input: oiio.ImageInput, path: str):
+    """(rgb (H, W, 3), alpha (H, W) or None) of the display window, as `_read_pixels` decodes
+    them (grey repeated into the three channels)."""
+    spec = image_input.spec()
+    rgb_index, alpha_index = channel_layout(spec, path)
+    channels = list(dict.fromkeys(rgb_index + ([] if alpha_index is None else [alpha_index])))
+    pixels = _to_display_window(_read_pixels(image_input, path, channels), spec)
+    alpha = None if alpha_index is None else pixels[:, :, channels.index(alpha_index)]
+    if len(set(rgb_index)) == 1:
+        return np.repeat(pixels[:, :, :1], 3, axis=2), alpha
+    return pixels[:, :, :3], alpha  # a view, no copy
 
 
 def _apply_orientation(array: np.ndarray, orientation: int) -> np.ndarray:
@@ -292,6 +356,24 @@ def _is_integer(spec: oiio.ImageSpec) -> bool:
     return spec.format.basetype not in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
 
 
+def refuse_non_finite(values: np.ndarray, path: str, what: str, fix: str) -> None:
+    """Raise InputError naming `path` when `values` ((H, W[, C]) pixels) hold NaN or Inf, which
+    float files (EXR, HDR, float TIFF) can store and no stage can use. `what` names the image
+    ("the photo", "the mask"), `fix` what to do. Checked a band of rows at a time."""
+    nan = inf = 0
+    first = None
+    for rows in row_bands(values.shape[0]):
+        band = values[rows]
+        nan += int(np.count_nonzero(np.isnan(band)))
+        inf += int(np.count_nonzero(np.isinf(band)))
+        if first is None and (nan or inf):
+            row, column = np.argwhere(~np.isfinite(band))[0][:2]
+            first = (rows.start + int(row), int(column))
+    if first is not None:
+        raise InputError(f"{what} holds {nan} NaN and {inf} Inf values (the first at row {first[0]}, "
+                         f"column {first[1]})", path=path, fix=fix)
+
+
 def image_from_array(array: np.ndarray, *, max_pixels: int = DEFAULT_MAX_PIXELS) -> Image:
     """An Image from pixels held in memory, read as `read_image` reads a file's: (H, W), (H, W,
     3) or (H, W, 4) (the fourth channel a straight alpha). uint8 / uint16 arrays are sRGB codes,
@@ -326,26 +408,26 @@ def read_image(path: str | Path, *, max_pixels: int = DEFAULT_MAX_PIXELS, srgb: 
     """Read an image file into linear float32 RGB plus an optional straight alpha.
 
     Formats: JPEG (RGB, gray, CMYK), PNG (8/16 bit; gray, gray+alpha, RGB, RGBA), TIFF,
-    WebP, EXR, HDR. The pixel count is checked against `max_pixels` from the header, before
-    any pixel is decoded. srgb=False reads integer files as data (masks, AO: value / max, no
-    transfer curve), the counterpart of write_image(..., srgb=False). Raises InputError for
-    anything that cannot be read.
+    WebP, EXR, HDR. What would be decoded (display window, data window, one tile:
+    `check_decoded_size`) is checked against `max_pixels` from the header, before any pixel
+    is decoded; an EXR's display window is the image (module docstring). srgb=False reads
+    integer files as data (masks, AO: value / max, no transfer curve), the counterpart of
+    write_image(..., srgb=False). Raises InputError for anything that cannot be read.
     """
     path = str(path)
     image_input = _open_input(path, max_pixels)
     try:
         spec = image_input.spec()
-        _check_pixel_count(spec, path, max_pixels)
-        pixels = _to_display_window(_read_pixels(image_input, path), spec)
+        check_decoded_size(spec, path, max_pixels)
+        rgb, alpha = _read_rgb_alpha(image_input, path)
     finally:
         image_input.close()
-    rgb, alpha = _split_channels(pixels, spec, path)
     # Orientation first: on codes it moves 1 or 2 bytes per value instead of 4 (views, mostly).
     orientation = spec.get_int_attribute("Orientation", 1)
     rgb = _apply_orientation(rgb, orientation)
     alpha = None if alpha is None else _apply_orientation(alpha, orientation)
     encoded = _is_integer(spec)
-    if pixels.dtype != np.float32:  # 8/16-bit codes (_stored_as_codes)
+    if rgb.dtype != np.float32:  # 8/16-bit codes (_stored_as_codes)
         rgb = _decode_codes(rgb, srgb)
         alpha = None if alpha is None else _decode_codes(alpha, srgb=False)
     else:
@@ -370,6 +452,68 @@ def _output_format(path: str) -> str:
         raise OutputError(f"unsupported output format '{extension}'", path=path,
                           fix="use a .png, .jpg, .exr or .hdr file name")
     return _OUTPUT_FORMATS[extension]
+
+
+def check_output_path(path: str | Path, *, overwrite: bool = True) -> None:
+    """Refuse, before any work, an output file `write_image` could not write: a format it does
+    not know (from the extension), a directory, an existing file without `overwrite`, a folder
+    that does not exist or that this user may not write into. Raises OutputError."""
+    path = str(path)
+    if os.path.isdir(path):
+        raise OutputError("is a directory", path=path, fix="give a file name, not a directory")
+    _output_format(path)
+    if not overwrite and os.path.lexists(path):
+        raise OutputError("file exists", path=path, fix="pass --overwrite or choose another name")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise OutputError("output folder does not exist", path=path, fix="create the folder first")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError("output folder is not writable", path=path,
+                          fix="choose another output location with -o, or make the folder writable")
+
+
+# Half floats (IEEE 754 binary16): the largest finite value, and the smallest normal one (below
+# it a value keeps fewer than 11 significant bits, and below 2**-24 it becomes 0)
+HALF_MAX = 65504.0
+HALF_MIN_NORMAL = 2.0 ** -14
+# A half-float EXR must keep the values within this many stops of a layer's brightest as
+# normal halves: darker ones are noise next to it
+HALF_KEPT_STOPS = 10
+
+
+def fits_half(array) -> bool:
+    """True when a half-float EXR keeps `array` as float32 would, to half's precision: no
+    finite value beyond +-HALF_MAX (it would become Inf) and the brightest value at least
+    2**HALF_KEPT_STOPS x HALF_MIN_NORMAL, so that every value within HALF_KEPT_STOPS stops of
+    it stays a normal half (a layer exposed far down, e.g. by --exposure -16, would round to
+    a few subnormal steps or to 0). Non-finite values are not counted (`write_image` repairs
+    them). array: any shape, (H, ...) checked a band of rows at a time."""
+    array = np.asarray(array)
+    if array.size == 0:
+        return True
+    top = 0.0
+    for rows in row_bands(array.shape[0]):
+        band = np.abs(array[rows])
+        finite = band[np.isfinite(band)]
+        if finite.size:
+            top = max(top, float(finite.max()))
+    return top <= HALF_MAX and (top == 0.0 or top >= HALF_MIN_NORMAL * 2.0 ** HALF_KEPT_STOPS)
+
+
+def _repair_non_finite(array: np.ndarray, path: str, what: str) -> np.ndarray:
+    """`array` with NaN set to 0 and +-Inf to the largest finite magnitude in it (0 if none),
+    with a RelightWarning counting them; `array` itself when all its values are finite."""
+    bad = sum(int(np.count_nonzero(~np.isfinite(array[rows]))) for rows in row_bands(array.shape[0]))
+    if bad == 0:
+        return array
+    finite = np.isfinite(array)
+    largest = float(np.abs(array[finite]).max()) if finite.any() else 0.0
+    nan, inf = int(np.count_nonzero(np.isnan(array))), int(np.count_nonzero(np.isinf(array)))
+    warnings.warn(f"{path}: the {what} to write had {nan} NaN and {inf} Inf values; wrote NaN "
+                  f"as 0 and Inf as the largest finite value ({largest:g})",
+                  RelightWarning, stacklevel=3)
+    repaired = np.nan_to_num(array, nan=0.0, posinf=largest, neginf=-largest)
+    return repaired.astype(np.float32, copy=False)
 
 
 def _check_arrays(rgb, alpha, path: str):
@@ -425,7 +569,7 @@ def _encode_pixels(fmt: str, rgb, alpha, bits, quality: int, half: bool, srgb: b
     colour = rgb if alpha is None else rgb * (alpha if rgb.ndim == 2 else alpha[:, :, None])
     pixels = _channels(colour, alpha)
     spec = oiio.ImageSpec(rgb.shape[1], rgb.shape[0], pixels.shape[2],
-                          oiio.HALF if half else oiio.FLOAT)
+                          oiio.HALF if half and fits_half(colour) else oiio.FLOAT)
     if pixels.shape[2] == 1:
         spec.channelnames = ("Y",)
     elif pixels.shape[2] == 2:
@@ -473,13 +617,17 @@ def write_image(path: str | Path, rgb, alpha=None, *, bits: int | None = None,
 
     rgb: (H, W, 3) or (H, W) float, linear light. alpha: (H, W) straight alpha in [0, 1] or
     None. The format comes from the extension: .png (8 or 16 `bits`, default 8, sRGB-encoded,
-    alpha kept), .jpg/.jpeg (8-bit sRGB at `quality`, alpha dropped), .exr (linear, `half`
-    or float, premultiplied alpha as the format expects), .hdr (linear RGBE, alpha dropped).
+    alpha kept), .jpg/.jpeg (8-bit sRGB at `quality`, alpha dropped), .exr (linear,
+    premultiplied alpha as the format expects; `half`: half floats where `fits_half` says they
+    keep the values, else float32; False: float32), .hdr (linear RGBE, alpha dropped).
+    NaN and Inf are never written: NaN becomes 0 and +-Inf the largest finite magnitude, with
+    a RelightWarning.
     `srgb=False` stores data maps (masks, AO) in PNG/JPEG as they are, without the transfer
     curve (values clipped to [0, 1]); `read_image` will still decode them as sRGB, so a reader
     of such a file undoes that with `linear_to_srgb`.
     The file appears complete or not at all: pixels go to a temporary file in the same
-    directory, then replace `path`. Raises OutputError when the file cannot be written.
+    directory, then replace `path`. Raises OutputError for an output that cannot be used
+    (`check_output_path`), WriteError when writing fails (disk full, ...), each naming `path`.
     """
     path = str(path)
     fmt = _output_format(path)
@@ -487,25 +635,72 @@ def write_image(path: str | Path, rgb, alpha=None, *, bits: int | None = None,
         raise UsageError(f"PNG bit depth must be 8 or 16, got {bits}", path=path,
                          fix="write 8 or 16 bits, or use .exr for float")
     rgb, alpha = _check_arrays(rgb, alpha, path)
-    if not overwrite and os.path.exists(path):
-        raise OutputError("file exists", path=path,
-                          fix="choose another output or allow overwriting")
-    if os.path.isdir(path):
-        raise OutputError("is a directory", path=path, fix="give a file name, not a directory")
+    check_output_path(path, overwrite=overwrite)
+    rgb = _repair_non_finite(rgb, path, "image")
     pixels, spec = _encode_pixels(fmt, rgb, alpha, bits, quality, half, srgb)
     try:
         temporary = _temporary_path(path)
     except OSError as error:
+        if error.errno in _FULL:
+            raise _write_error(path, error.strerror) from error
         raise OutputError(f"directory not writable: {error.strerror}", path=path,
                           fix="choose another output location with -o") from error
     try:
-        failure = _write_pixels(temporary, pixels, spec)
+        failure = _write_pixels(temporary, pixels, spec) or _unreadable_reason(temporary)
         if failure is not None:
-            raise OutputError(f"cannot write image: {failure}", path=path, fix=_FIX_UNWRITABLE)
+            raise _write_error(path, _refusal_reason(temporary) or failure)
         os.replace(temporary, path)
     except OSError as error:
-        raise OutputError(f"cannot write image: {error}", path=path,
-                          fix=_FIX_UNWRITABLE) from error
+        raise _write_error(path, error.strerror or str(error)) from error
     finally:
         if os.path.exists(temporary):
             os.remove(temporary)
+
+
+# The file system is full, or this user's share of it: the fix is space, not another option
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+def _write_error(path: str, reason: str) -> WriteError:
+    """The error for a write that failed part-way: the plain reason (its first line, lower
+    case: "no space left on device"), the output's own path."""
+    reason = reason.strip().splitlines()[0] if reason.strip() else "unknown error"
+    return WriteError(f"cannot write the output: {reason[:1].lower()}{reason[1:]}", path=path,
+                      fix=_FIX_UNWRITABLE)
+
+
+def _unreadable_reason(path: str) -> str | None:
+    """None when the file just written decodes whole (every scanline, a band at a time, as
+    stored), else why not. A codec's last bytes can wait in a buffer until the file is closed,
+    and OIIO does not check that close: on a full disk a small PNG is cut short while its
+    write reports success."""
+    image_input = oiio.ImageInput.open(path)
+    if image_input is None:
+        return oiio.geterror() or "the file written cannot be read back"
+    try:
+        spec = image_input.spec()
+        for rows in row_bands(spec.height):
+            pixels = image_input.read_scanlines(0, 0, spec.y + rows.start, spec.y + rows.stop, 0, 0,
+                                                spec.nchannels, spec.format)
+            if pixels is None or image_input.has_error:
+                return image_input.geterror() or "the file written is incomplete"
+    finally:
+        image_input.close()
+    return None
+
+
+def _refusal_reason(temporary: str) -> str | None:
+    """Why the file system refused a write OIIO reported as failed (its own text is a codec's,
+    e.g. libpng's "Write error at position ..."): the OS's reason for refusing 1 MiB more to
+    the same file (ENOSPC "No space left on device", EDQUOT, EFBIG, EIO), or None when the
+    file system takes it (the failure was the codec's own)."""
+    try:
+        handle = os.open(temporary, os.O_WRONLY | os.O_APPEND)
+        try:
+            os.write(handle, bytes(1 << 20))
+            os.fsync(handle)
+        finally:
+            os.close(handle)
+    except OSError as error:
+        return error.strerror
+    return None

@@ -8,6 +8,7 @@ layouts, pad, run, and crop.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -21,18 +22,29 @@ CPU_PROVIDER = "CPUExecutionProvider"
 ORT_DTYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "int64": "tensor(int64)"}
 
 
-def _import_onnxruntime():
+# Session log severity: errors only. Warnings (graph optimisation notes) mean nothing to a user
+# and come in colour codes on stderr, into the batch log.
+ORT_LOG_ERRORS = 3
+
+
+def import_onnxruntime():
+    """onnxruntime with its telemetry off. On import it writes a device id under
+    ~/.cache/Microsoft and warns in colour when it cannot (a read-only container, a --user
+    without a home); ORT_DISABLE_TELEMETRY, set before the first import, stops both (a caller's
+    setting wins). The only place relightcli imports onnxruntime."""
+    os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
     try:
         import onnxruntime
     except ImportError as exc:
         raise MissingDependencyError("onnxruntime is not installed", fix="pip install onnxruntime") from exc
+    onnxruntime.disable_telemetry_events()
     return onnxruntime
 
 
 def select_providers(available: list[str] | None = None) -> list[str]:
     """CUDA first when this onnxruntime build has it, then CPU (always last, the fallback)."""
     if available is None:
-        available = _import_onnxruntime().get_available_providers()
+        available = import_onnxruntime().get_available_providers()
     return ([CUDA_PROVIDER] if CUDA_PROVIDER in available else []) + [CPU_PROVIDER]
 
 
@@ -120,8 +132,9 @@ class ModelSession:
                     path=self.path, fix=MODELS_FIX)
 
     def _create_session(self, threads: int | None, providers: list[str] | None):
-        ort = _import_onnxruntime()
+        ort = import_onnxruntime()
         options = ort.SessionOptions()
+        options.log_severity_level = ORT_LOG_ERRORS
         if threads is not None:
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1

@@ -73,7 +73,7 @@ def pixel_centres(rect, resolution):
     if width < 1 or height < 1:
         raise UsageError(f"resolution must be positive, got {width}x{height}")
     if not (x1 > x0 and y1 > y0):
-        raise UsageError(f"rectangle must have x1 > x0 and y1 > y0, got {rect}")
+        raise UsageError(f"rectangle must have x1 > x0 and y1 > y0, got ({x0:g}, {x1:g}, {y0:g}, {y1:g})")
     x = x0 + (np.arange(width) + 0.5) * (x1 - x0) / width
     y = y1 - (np.arange(height) + 0.5) * (y1 - y0) / height
     xx, yy = np.meshgrid(x, y)

@@ -10,13 +10,12 @@ small tables stay in cache.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
-from relightcli.errors import InputError, RelightWarning
+from relightcli.errors import InputError
 from relightcli.io.envmap import (
     direction_to_uv,
+    repair_radiance,
     resample_envmap,
     texel_solid_angles,
     uv_to_direction,
@@ -42,20 +41,15 @@ GUIDE_MAX_BUCKETS = 1 << 19
 
 
 def sanitize_radiance(radiance) -> np.ndarray:
-    """(H, W, 3) float32 copy with NaN, Inf and negative texels set to 0 (warns when it does)."""
+    """(H, W, 3) float32, finite and >= 0, by the maps' one rule (io.envmap.repair_radiance:
+    NaN, -Inf and negatives -> 0, +Inf -> the largest finite value; warns when it repairs)."""
     radiance = np.asarray(radiance, dtype=np.float32)
     if radiance.ndim != 3 or radiance.shape[2] != 3 or radiance.shape[0] < 1:
         raise InputError(
             f"environment map must be (H, W, 3), got shape {radiance.shape}",
             fix="pass an equirectangular RGB map with W = 2H",
         )
-    bad = ~np.isfinite(radiance) | (radiance < 0)
-    if bad.any():
-        warnings.warn(
-            f"environment map: {int(bad.sum())} NaN/Inf/negative values set to 0", RelightWarning
-        )
-        radiance = np.where(bad, np.float32(0.0), radiance)
-    return np.ascontiguousarray(radiance, dtype=np.float32)
+    return np.ascontiguousarray(repair_radiance(radiance, stacklevel=3), dtype=np.float32)
 
 
 class EnvironmentLight:

@@ -146,16 +146,6 @@ def relit_matte(frame: Frame, background: str) -> tuple[float, float] | None:
     return compose.PREDICTED_MATTE if frame.mask_predicted and background in SHARPENED_OVER else None
 
 
-# Largest finite half float: an EXR layer with larger values is written as float32
-HALF_MAX = 65504.0
-
-
-def fits_half(array: np.ndarray) -> bool:
-    """True when every value of the array is finite and within +-HALF_MAX (a half-float EXR
-    keeps it finite), checked a band of rows at a time."""
-    return all(bool(np.all(np.abs(array[rows]) <= HALF_MAX)) for rows in row_bands(array.shape[0]))
-
-
 def background_view(frame: Frame, options) -> np.ndarray:
     """The environment seen by a 60-degree camera, rendered at most 1024 wide (the map has no
     more detail than that) and resized to the photo."""

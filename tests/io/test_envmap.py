@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from exr_testing import write_windowed_exr
 from relightcli.errors import InputError, RelightWarning, UsageError
 from relightcli.io import envmap as em
 
@@ -442,3 +443,74 @@ def test_is_constant_false_for_small_bump():
     env = np.full((4, 8, 3), 0.5, np.float32)
     env[2, 3, 1] = 0.5005
     assert not em.is_constant(env, rtol=1e-4)
+
+
+# --- hostile maps: too bright to integrate, huge turns, data windows (hostile sweep) -----------
+
+def test_map_too_bright_to_integrate_is_refused_naming_the_file(tmp_path):
+    # a uniform 3e38 map: its irradiance (pi L) and the estimates' squares overflow float32
+    path = write_float_image(tmp_path / "blinding.exr", np.full((4, 8, 3), 3e38, np.float32))
+    with pytest.raises(InputError) as caught:
+        em.load_envmap(path)
+    message = str(caught.value)
+    assert "blinding.exr" in message and "3e+38" in message and "2^72" in message
+    assert "--exposure" not in message  # 72 stops is beyond what --exposure may take
+
+
+def test_map_at_the_radiance_ceiling_is_accepted_and_just_above_refused():
+    at = np.full((2, 4, 3), em.MAX_RADIANCE, np.float32)
+    assert em.envmap_from_array(at).max() == em.MAX_RADIANCE
+    above = np.full((2, 4, 3), np.nextafter(np.float32(em.MAX_RADIANCE), np.float32(np.inf)))
+    with pytest.raises(InputError, match=r"--exposure -1\b"):
+        em.envmap_from_array(above)
+
+
+def test_exposure_past_the_ceiling_is_a_usage_error_saying_how_far_to_go():
+    env = np.full((2, 4, 3), 1e3, np.float32)
+    with pytest.raises(UsageError, match=r"--exposure 64 takes .* to 1\.84e\+22.*use --exposure 46 or less"):
+        em.envmap_from_array(env, exposure_ev=64.0)
+    assert em.envmap_from_array(env, exposure_ev=46.0).max() == pytest.approx(1e3 * 2.0 ** 46)
+    with pytest.raises(UsageError):
+        em.expose(env, 64.0)  # the function on its own, too: no Inf texels
+
+
+def test_exposure_can_bring_a_too_bright_map_under_the_ceiling():
+    env = np.full((2, 4, 3), 1e18, np.float32)
+    np.testing.assert_array_equal(em.envmap_from_array(env, exposure_ev=-4.0), env / np.float32(16.0))
+
+
+@pytest.mark.parametrize("degrees", [1e308, -1e308, 3.6e6 + 90.0, 2.0 ** 60 + 45.0])
+def test_rotation_by_any_finite_angle_is_its_turn_within_a_revolution(degrees):
+    env = random_env(8)
+    np.testing.assert_array_equal(em.rotate_envmap(env, degrees), em.rotate_envmap(env, math.fmod(degrees, 360.0)))
+
+
+def test_rotation_by_ten_thousand_turns_and_a_quarter_is_a_quarter_turn():
+    env = random_env(8)
+    np.testing.assert_array_equal(em.rotate_envmap(env, 360.0 * 10_000 + 90.0), em.rotate_envmap(env, 90.0))
+
+
+@pytest.mark.parametrize("degrees", [float("nan"), float("inf"), float("-inf")])
+def test_rotation_refuses_non_finite(degrees):
+    with pytest.raises(UsageError, match="rotation must be a finite number"):
+        em.rotate_envmap(random_env(2), degrees)
+
+
+def test_map_is_its_display_window_cut_from_the_data_window(tmp_path):
+    # a 16 x 8 map storing 20 x 5 texels from (-2, 0): the sky rows, two columns spilling over
+    # each side; the ground rows hold nothing (black)
+    stored = random_env(10)[:5, :20]
+    env = em.load_envmap(write_windowed_exr(tmp_path / "sky_only.exr", stored, (-2, 0), (16, 8)))
+    expected = np.zeros((8, 16, 3), np.float32)
+    expected[:5] = stored[:, 2:18]
+    np.testing.assert_array_equal(env, expected)
+
+
+def test_map_data_window_over_the_limit_is_refused_from_the_header(tmp_path):
+    stored = np.ones((40, 80, 3), np.float32)
+    path = write_windowed_exr(tmp_path / "overscan.exr", stored, (-24, -12), (32, 16))
+    with pytest.raises(InputError) as caught:
+        em.load_envmap(path, max_pixels=3000)  # the 32 x 16 map fits, its 80 x 40 stored texels not
+    message = str(caught.value)
+    assert "overscan.exr" in message and "data window" in message and "80x40 = 3200" in message
+    assert "--crop 32x16+0+0" in message and "--max-pixels" not in message  # the map limit is fixed

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import time
 import tracemalloc
@@ -11,7 +12,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from relightcli.errors import InputError, OutputError, UsageError
+from exr_testing import write_exr, write_float_exr, write_windowed_exr
+from relightcli.errors import InputError, OutputError, RelightWarning, UsageError, WriteError
 from relightcli.io import images
 from relightcli.io.images import (
     image_size,
@@ -269,7 +271,7 @@ def test_one_by_one_image_reads(tmp_path):
 def test_photo_with_nan_reads_without_crashing(tmp_path, smooth_rgb):
     rgb = smooth_rgb(8, 8)
     rgb[3, 4] = np.nan
-    write_image(tmp_path / "nan_photo.exr", rgb, half=False)
+    write_float_exr(tmp_path / "nan_photo.exr", rgb)  # write_image would write the NaN as 0
     image = read_image(tmp_path / "nan_photo.exr")
     assert np.isnan(image.rgb[3, 4]).all()
     assert np.isfinite(np.delete(image.rgb.reshape(-1, 3), 3 * 8 + 4, axis=0)).all()
@@ -496,10 +498,10 @@ def test_failed_write_leaves_no_temporary_and_old_file_intact(tmp_path, monkeypa
     target = tmp_path / "relit.png"
     target.write_bytes(b"previous result")
     monkeypatch.setattr(images, "_write_pixels", _half_written_then(outcome))
-    expected = RuntimeError if isinstance(outcome, Exception) else OutputError
+    expected = RuntimeError if isinstance(outcome, Exception) else WriteError
     with pytest.raises(expected) as caught:
         write_image(target, smooth_rgb(4, 4))
-    if expected is OutputError:
+    if expected is WriteError:
         assert "relit.png" in str(caught.value)
     assert listing(tmp_path) == ["relit.png"]
     assert target.read_bytes() == b"previous result"
@@ -507,7 +509,7 @@ def test_failed_write_leaves_no_temporary_and_old_file_intact(tmp_path, monkeypa
 
 def test_failed_first_write_leaves_nothing(tmp_path, monkeypatch, smooth_rgb):
     monkeypatch.setattr(images, "_write_pixels", _half_written_then("injected failure"))
-    with pytest.raises(OutputError, match="fresh.exr"):
+    with pytest.raises(WriteError, match="fresh.exr"):
         write_image(tmp_path / "fresh.exr", smooth_rgb(4, 4))
     assert listing(tmp_path) == []
 
@@ -567,3 +569,178 @@ def test_written_files_carry_no_time_stamp(tmp_path, name):
     names = [attribute.name for attribute in image_input.spec().extra_attribs]
     image_input.close()
     assert "DateTime" not in names
+
+
+# --- what is decoded: data windows, tiles, parts, channels (hostile sweep, case A) ----------
+
+def test_exr_data_window_across_the_display_window_is_cut_to_it(tmp_path):
+    # stored pixels 6 x 5 starting at (-2, 3) over an 8 x 6 display: the left two columns and
+    # the bottom two rows fall outside (dropped), the display's top three rows and right four
+    # columns have nothing stored (black and transparent)
+    values = np.arange(6 * 5, dtype=np.float32).reshape(5, 6) + 1.0
+    pixels = np.stack([values, 2 * values, 3 * values, np.ones_like(values)], axis=-1)
+    path = write_windowed_exr(tmp_path / "overscan.exr", pixels, (-2, 3), (8, 6))
+    image = read_image(path)
+    assert image.rgb.shape == (6, 8, 3) and image.alpha.shape == (6, 8)
+    expected = np.zeros((6, 8, 3), np.float32)
+    expected[3:6, 0:4] = pixels[0:3, 2:6, :3]
+    np.testing.assert_array_equal(image.rgb, expected)
+    expected_alpha = np.zeros((6, 8), np.float32)
+    expected_alpha[3:6, 0:4] = 1.0
+    np.testing.assert_array_equal(image.alpha, expected_alpha)
+
+
+def test_exr_data_window_wholly_outside_the_display_window_reads_black(tmp_path):
+    pixels = np.ones((4, 4, 4), np.float32)
+    image = read_image(write_windowed_exr(tmp_path / "away.exr", pixels, (20, 20), (8, 4)))
+    assert image.rgb.shape == (4, 8, 3) and not image.rgb.any() and not image.alpha.any()
+
+
+def test_data_window_over_the_limit_is_refused_from_the_header(tmp_path):
+    # an 8 x 4 image storing 400 x 300 pixels: the display window is within the limit, the
+    # pixels decoded are not
+    path = write_exr(tmp_path / "overscan.exr", display=(8, 4), data=(-10, -10, 400, 300))
+    with pytest.raises(InputError) as caught:
+        read_image(path, max_pixels=100_000)
+    message = str(caught.value)
+    assert "overscan.exr" in message and "data window" in message and "400x300 = 120000" in message
+    assert "--crop 8x4+0+0" in message and "--max-pixels" in message
+    assert read_image(path, max_pixels=120_000).rgb.shape == (4, 8, 3)  # at the limit: read
+
+
+def test_tile_over_the_limit_is_refused_from_the_header(tmp_path):
+    # a 64 x 32 image in one 512 x 512 tile: the reader decodes whole tiles
+    path = write_exr(tmp_path / "tiled.exr", display=(64, 32), data=(0, 0, 64, 32), tile=512)
+    with pytest.raises(InputError, match=r"tiled.exr: image is stored in tiles of 512x512 = 262144"):
+        read_image(path, max_pixels=100_000)
+    assert read_image(path, max_pixels=262_144).rgb.shape == (32, 64, 3)
+
+
+def test_only_the_first_part_is_read_and_counted(tmp_path):
+    # part 0: 16 x 8 of 0.25; part 1 stores 1200 x 1000 of 0.75, more than the limit given
+    # (the parts of an EXR share one display window)
+    path = str(tmp_path / "parts.exr")
+    specs = [oiio.ImageSpec(16, 8, 3, oiio.FLOAT), oiio.ImageSpec(1200, 1000, 3, oiio.HALF)]
+    specs[1].full_width, specs[1].full_height = 16, 8
+    output = oiio.ImageOutput.create(path)
+    assert output.open(path, specs)
+    output.write_image(np.full((8, 16, 3), 0.25, np.float32))
+    output.open(path, specs[1], "AppendSubimage")
+    output.write_image(np.full((1000, 1200, 3), 0.75, np.float32))
+    output.close()
+    image = read_image(path, max_pixels=1000)
+    assert image.rgb.shape == (8, 16, 3) and (image.rgb == 0.25).all()
+
+
+def test_channels_the_image_does_not_use_are_not_decoded(tmp_path):
+    # R, G, B and 61 render passes: reading all would hold 64 channels of float32
+    passes = tuple(f"pass{k:02d}" for k in range(61))
+    path = write_exr(tmp_path / "passes.exr", display=(256, 128), data=(0, 0, 256, 128),
+                     channels=("R", "G", "B") + passes, value=0.5)
+    rgb_bytes = 256 * 128 * 3 * 4
+    peak = traced_peak(lambda: read_image(path))
+    assert peak < 4 * rgb_bytes  # every channel: 21 x rgb_bytes
+    image = read_image(path)
+    assert image.rgb.shape == (128, 256, 3) and (image.rgb == 0.5).all() and image.alpha is None
+
+
+@pytest.mark.parametrize("channels, reads", [([0, 1, 2], [(0, 3)]), ([2, 1, 0, 3], [(0, 4)]),
+                                             ([5, 6, 7], [(5, 8)]), ([0, 41, 42], [(0, 1), (41, 42), (42, 43)])])
+def test_read_channels_reads_a_narrow_span_once_else_each_channel(channels, reads):
+    stored = np.arange(2 * 3 * 50, dtype=np.float32).reshape(2, 3, 50)
+    calls = []
+
+    def read(first, stop):
+        calls.append((first, stop))
+        return stored[:, :, first:stop]
+
+    np.testing.assert_array_equal(images.read_channels(read, channels), stored[:, :, channels])
+    assert calls == reads
+
+
+# --- EXR half or float, and no NaN or Inf written (case C) ---------------------------------
+
+def test_values_above_half_max_are_written_as_float32(tmp_path):
+    rgb = np.full((4, 6, 3), 1e5, np.float32)
+    rgb[0, 0] = 3.0
+    write_image(tmp_path / "bright.exr", rgb)
+    image = read_image(tmp_path / "bright.exr")
+    assert image.bits == 32 and np.isfinite(image.rgb).all()
+    np.testing.assert_array_equal(image.rgb, rgb)
+
+
+@pytest.mark.parametrize("stops", [-16, -30, -60])
+def test_a_layer_exposed_far_down_keeps_every_value(tmp_path, stops, smooth_rgb):
+    # "every output changes by that factor": half would round 2**-16 x a layer to a few
+    # subnormal steps and 2**-30 x it to 0
+    rgb = smooth_rgb(8, 8)
+    write_image(tmp_path / "dark.exr", rgb * np.float32(2.0 ** stops))
+    image = read_image(tmp_path / "dark.exr")
+    assert image.bits == 32
+    np.testing.assert_array_equal(image.rgb, rgb * np.float32(2.0 ** stops))
+
+
+def test_an_ordinary_layer_stays_half(tmp_path, smooth_rgb):
+    write_image(tmp_path / "plain.exr", smooth_rgb(8, 8))
+    assert read_image(tmp_path / "plain.exr").bits == 16
+
+
+@pytest.mark.parametrize("top, expected", [(0.0, True), (1.0, True), (65504.0, True), (65600.0, False),
+                                           (2.0 ** -4, True), (2.0 ** -4.01, False), (-7e4, False)])
+def test_fits_half_bounds(top, expected):
+    values = np.array([[top, top / 1024, 0.0]], np.float32)
+    assert images.fits_half(values) is expected
+
+
+def test_nan_and_inf_are_never_written(tmp_path, smooth_rgb):
+    rgb = smooth_rgb(6, 6)
+    rgb[1, 1, 0], rgb[2, 2, 1], rgb[3, 3, 2] = np.nan, np.inf, -np.inf
+    for name in ("out.exr", "out.hdr", "out.png"):
+        with pytest.warns(RelightWarning, match=rf"{name}: .*1 NaN and 2 Inf"):
+            write_image(tmp_path / name, rgb)
+        assert np.isfinite(read_image(tmp_path / name).rgb).all()
+    stored = read_image(tmp_path / "out.exr").rgb
+    largest = float(np.nanmax(np.abs(np.where(np.isfinite(rgb), rgb, np.nan))))
+    assert stored[1, 1, 0] == 0.0
+    assert stored[2, 2, 1] == pytest.approx(largest, rel=1e-3)  # half rounding
+    assert stored[3, 3, 2] == pytest.approx(-largest, rel=1e-3)
+
+
+# --- outputs checked before work, write failures (cases B and D) --------------------------
+
+@pytest.mark.parametrize("name", ["shading.tiff", "a_folder"])
+def test_check_output_path_refuses_what_write_image_cannot_write(tmp_path, name):
+    (tmp_path / "a_folder").mkdir()
+    with pytest.raises(OutputError, match=name):
+        images.check_output_path(tmp_path / name)
+
+
+def test_check_output_path_refuses_a_missing_folder(tmp_path):
+    with pytest.raises(OutputError, match="folder does not exist"):
+        images.check_output_path(tmp_path / "nowhere" / "shading.exr")
+
+
+def test_disk_full_is_a_write_error_with_the_plain_reason(tmp_path, monkeypatch, smooth_rgb):
+    # the codec says what libpng says on a full disk; the file system says why
+    target = tmp_path / "relit.png"
+    monkeypatch.setattr(images, "_write_pixels", _half_written_then(
+        "Write error at position 65793, could only write 3839/8192 bytes\nWrite error at ..."))
+    real_write = os.write
+
+    def full_disk(handle, data):
+        if os.fstat(handle).st_ino == _temporary_inode(tmp_path):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(handle, data)
+
+    monkeypatch.setattr(os, "write", full_disk)
+    with pytest.raises(WriteError) as caught:
+        write_image(target, smooth_rgb(4, 4))
+    assert str(caught.value).startswith(f"{target}: cannot write the output: no space left on device")
+    assert "Write error" not in str(caught.value) and caught.value.exit_code == 1
+    assert listing(tmp_path) == []
+
+
+def _temporary_inode(folder) -> int | None:
+    """The inode of the writer's temporary file in `folder` (the one hidden file there)."""
+    hidden = [p for p in Path(folder).iterdir() if p.name.startswith(".")]
+    return hidden[0].stat().st_ino if hidden else None
