@@ -410,9 +410,24 @@ def test_the_photos_detail_is_left_out_where_the_crop_has_its_pixels_and_bounded
     photo[64, 64] = 50.0
     coarse = CropBox(0, 0, 128, 32)
     factor = PhotoDetail(photo, crop_square(photo, coarse), coarse, mask).factor(slice(0, 128))
-    assert np.isfinite(factor).all() and factor.max() <= DETAIL_RANGE and factor.min() >= 1.0 / DETAIL_RANGE
+    assert np.isfinite(factor).all() and factor.max() <= DETAIL_RANGE and factor.min() >= 0.0
     assert (factor[64, 64] == DETAIL_RANGE).all()
     assert (factor[mask < 0.5] == 1.0).all()
+
+
+def test_a_black_pixel_of_the_photo_stays_black_in_the_relit_person():
+    """The detail puts back the photo times the crop's relight ratio: a pixel the photo has at 0
+    (a nostril, a pupil, clipped shadows) is 0 in the relit too, never lifted into a bright spot."""
+    from relightcli.compose import CropBox, PhotoDetail, composite_crop, crop_square
+
+    photo, mask = _textured_photo()
+    photo[250:254, 250:254] = 0.0  # a few black pixels, finer than a crop pixel
+    photo[300, 300, 0] = 0.0  # one channel of one pixel
+    box = CropBox(0, 0, 512, 128)
+    crop = crop_square(photo, box)
+    relit, _ = composite_crop(crop * np.float32(2.0), box, mask, "#000000", detail=PhotoDetail(photo, crop, box, mask))
+    assert (relit[250:254, 250:254] == 0.0).all() and relit[300, 300, 0] == 0.0
+    assert (relit[300, 300, 1:] > 0.0).all()
 
 
 def _face_relit(input_shading, photo, mask, net_albedo):
