@@ -5,31 +5,22 @@ Library code: it raises and returns; the CLI prints. One failing item never stop
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import ctypes
 import ctypes.util
 import errno
 import glob
-import importlib.util
-import json
-import logging
-import multiprocessing
-import multiprocessing.connection
 import os
-import pickle
 import re
 import secrets
 import signal
 import socket
 import stat
-import sys
 import tempfile
 import threading
 import time
-import traceback
 import warnings
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -38,7 +29,6 @@ from relightcli.errors import (
     EXIT_MISSING,
     EXIT_OK,
     InputError,
-    MissingDependencyError,
     OutputError,
     RelightError,
     RelightWarning,
@@ -531,7 +521,7 @@ def run_items(
     `__call__(item) -> ItemReport`. workers > 1 runs items on that many processes (each calls
     `setup()` once); the reports come back in input order whatever the number of workers.
     A worker process that dies (the OOM killer, kill -9) fails only the item it held, and
-    another takes its place (`_Pool`). RelightWarnings raised while processing an item are
+    another takes its place (`relightcli.pool`). RelightWarnings raised while processing an item are
     recorded into its report. Staging files that ended runs left behind are removed first.
 
     An item's outputs appear together or not at all (see `relight_staged`). A KeyboardInterrupt
@@ -563,7 +553,9 @@ def _run_sequential(items, worker, skip_existing, overwrite, on_done) -> list[It
 
 
 def _run_pool(items, worker, workers, skip_existing, overwrite, on_done) -> list[ItemReport]:
-    pool = _Pool(items, worker, min(workers, len(items)), skip_existing, overwrite)
+    from relightcli.pool import Pool  # the pool's worker processes import this module
+
+    pool = Pool(items, worker, min(workers, len(items)), skip_existing, overwrite)
     try:
         pool.run(on_done)
     except KeyboardInterrupt as interrupt:
@@ -575,318 +567,10 @@ def _run_pool(items, worker, workers, skip_existing, overwrite, on_done) -> list
     return pool.reports
 
 
-START_DEATHS_LIMIT = 3  # worker processes in a row ending before set-up: no more are started
-COMMIT_WAIT_S = 10.0  # how long a stop waits for renames under way (milliseconds, but a hung disk)
-
-
-class _PoolWorker:
-    """One worker process as the pool sees it, with the pool's end of their pipe."""
-
-    def __init__(self, process, conn):
-        self.process, self.conn = process, conn
-        self.ready = False  # set up: it takes items
-        self.index: int | None = None  # the item it holds
-        self.moving = False  # told to rename that item's files into place, not yet done
-        self.ended = False  # its end of the pipe closed: the process has ended
-        self.oom_kills = _oom_kill_count()  # the OOM killer's count when it started or took its item
-
-
-class _Pool:
-    """The local engine: `size` spawned processes, each holding one `worker`, fed one item at a
-    time over a pipe of its own.
-
-    A worker that dies fails the item it held and no other, and a new one takes its place;
-    after START_DEATHS_LIMIT deaths in a row before set-up, none is started and the items left
-    fail. A worker asks before renaming an item's files into place and says when they all are
-    (`_PoolCommit`): a stop never kills one half-way through an item's renames, and an item in
-    place is reported ok even when its worker died before its report came back. SIGINT and
-    SIGTERM are held while the books change, so a stop finds every item waiting, held by a
-    worker, or done. The workers die with this process (`_die_with_parent`).
-    """
-
-    def __init__(self, items: list[Item], worker, size: int, skip_existing: bool, overwrite: bool):
-        self.items, self.size = items, size
-        self.context = multiprocessing.get_context("spawn")  # fork would break ONNX Runtime / OpenMP threads
-        # The first message to every worker (`_serve_items`), pickled once for all
-        self.setup_message = pickle.dumps((worker, skip_existing, overwrite, _staging_tag()))
-        self.todo = collections.deque(range(len(items)))  # items not yet given to a worker
-        self.reports: list[ItemReport | None] = [None] * len(items)
-        self.left = len(items)  # items without a report
-        self.in_place: set[int] = set()  # items whose files are all renamed into place
-        self.workers: list[_PoolWorker] = []
-        self.start_deaths, self.start_death_cause = 0, ""
-        self.closing = False
-        self._deferral = _SignalDeferral()
-
-    def run(self, on_done) -> None:
-        """Every item to a worker; `on_done(report)` as each finishes."""
-        while self.left:
-            with self._held():
-                started = self._start_workers()
-                done = [] if self.workers else self._fail_todo(*self._start_failure())
-            for worker in started:  # may wait for the child to read it: a stop kills the child
-                with contextlib.suppress(BrokenPipeError):  # it died starting: its sentinel tells
-                    worker.conn.send_bytes(self.setup_message)
-            if self.workers:
-                ready = set(multiprocessing.connection.wait(
-                    [w.conn for w in self.workers] + [w.process.sentinel for w in self.workers]))
-                with self._held():
-                    done += self._handle(ready)
-            for index in done:
-                if on_done is not None:
-                    on_done(self.reports[index])
-
-    @contextlib.contextmanager
-    def _held(self):
-        """SIGINT and SIGTERM held inside, raised at its end, once the books are straight."""
-        with self._deferral:
-            try:
-                yield
-            finally:
-                self._deferral.deliver_pending()
-
-    def _start_workers(self) -> list[_PoolWorker]:
-        """Processes enough for the items left, at most `size`; none once too many died starting."""
-        wanted = min(self.size, len(self.todo) + sum(w.index is not None for w in self.workers))
-        started = []
-        while len(self.workers) < wanted and self.start_deaths < START_DEATHS_LIMIT:
-            conn, child_conn = self.context.Pipe()
-            process = self.context.Process(target=_pool_worker_main, args=(child_conn,), name="relight-worker")
-            try:
-                with _stop_signals_blocked():
-                    process.start()
-            except OSError as exc:  # EAGAIN, ENOMEM: a process or memory limit
-                conn.close()
-                self._count_start_death(f"no worker process could be started ({exc.strerror or exc})")
-                continue
-            finally:
-                child_conn.close()
-            started.append(_PoolWorker(process, conn))
-            self.workers.append(started[-1])
-        return started
-
-    def _handle(self, ready: set) -> list[int]:
-        """What the ready workers sent, then their deaths; returns the items finished."""
-        done = []
-        for worker in list(self.workers):
-            if worker.conn in ready or worker.process.sentinel in ready:
-                done += self._receive(worker)
-                if worker.ended or worker.process.sentinel in ready:
-                    done += self._bury(worker)
-        return done
-
-    def _receive(self, worker: _PoolWorker) -> list[int]:
-        """Every message waiting in the worker's pipe; sets `ended` when the pipe has closed."""
-        done = []
-        while not worker.ended and worker.conn.poll():
-            try:
-                message = worker.conn.recv()
-            except (EOFError, ConnectionResetError):
-                worker.ended = True
-                break
-            done += self._on_message(worker, *message)
-        return done
-
-    def _on_message(self, worker: _PoolWorker, kind: str, *args) -> list[int]:
-        if self.closing and kind not in ("committed", "report"):
-            return []  # no more work and no more commits: the workers are about to be killed
-        if kind == "ready":
-            worker.ready, self.start_deaths = True, 0
-            self._give_work(worker)
-        elif kind == "commit":
-            worker.moving = True
-            _send(worker, "go")
-        elif kind == "committed":
-            self.in_place.add(args[0])
-            worker.moving = False
-        elif kind == "report":
-            index, report = args
-            worker.index, worker.moving = None, False
-            self._give_work(worker)
-            return self._finish(index, report)
-        elif kind == "setup failed":  # a user's error (a missing model): every item would fail alike
-            return self._fail_todo(*args)
-        elif kind == "crashed":  # a bug: raised here, as a batch in one process would raise it
-            raise RuntimeError(f"a worker process failed:\n{args[0]}")
-        else:
-            raise RuntimeError(f"unknown message {kind!r} from a worker process")
-        return []
-
-    def _give_work(self, worker: _PoolWorker) -> None:
-        """The next item, or None when none is left (the worker then ends)."""
-        if self.closing:
-            return
-        if not self.todo:
-            _send(worker, None)
-            return
-        worker.index, worker.oom_kills = self.todo.popleft(), _oom_kill_count()
-        _send(worker, (worker.index, self.items[worker.index]))
-
-    def _finish(self, index: int, report: ItemReport) -> list[int]:
-        self.reports[index] = report
-        self.left -= 1
-        return [index]
-
-    def _bury(self, worker: _PoolWorker) -> list[int]:
-        """The worker process has ended: its item fails, unless its files were all in place."""
-        self.workers.remove(worker)
-        worker.process.join()
-        worker.conn.close()
-        cause = _death_cause(worker.process.exitcode, worker.oom_kills)
-        worker.process.close()
-        if not worker.ready:
-            self._count_start_death(cause)
-        if worker.index is None:
-            return []
-        return self._finish(worker.index, self._lost_item_report(worker, cause))
-
-    def _lost_item_report(self, worker: _PoolWorker, cause: str) -> ItemReport:
-        item = self.items[worker.index]
-        staged = [path for path in item.outputs.values() if _staging_path(path).exists()]
-        if worker.index in self.in_place or (worker.moving and not staged):
-            return _committed_report(item)  # whole on disk; its own report died with the worker
-        _discard_staged(item, leftovers=True)
-        if worker.moving and len(staged) < len(item.outputs):
-            error = (f"{item.input}: {cause} while moving its outputs into place: some are this "
-                     "run's, the others as they were (rerun it with --overwrite)")
-        else:
-            error = (f"{item.input}: {cause} while relighting it; nothing of it was written "
-                     f"({_death_fix(cause)})")
-        return ItemReport(str(item.input), error=error, exit_code=EXIT_ITEMS_FAILED)
-
-    def _count_start_death(self, cause: str) -> None:
-        self.start_deaths += 1
-        self.start_death_cause = cause
-
-    def _start_failure(self) -> tuple[str, int]:
-        return (f"not relit: {self.start_deaths} worker processes in a row ended before they were "
-                f"ready, the last: {self.start_death_cause} (retry with --workers 1)", EXIT_ITEMS_FAILED)
-
-    def _fail_todo(self, reason: str, code: int) -> list[int]:
-        """Every item not yet given to a worker fails with `reason`."""
-        done = []
-        while self.todo:
-            item = self.items[index := self.todo.popleft()]
-            done += self._finish(index, ItemReport(str(item.input), error=f"{item.input}: {reason}",
-                                                   exit_code=code))
-        return done
-
-    def stop(self) -> None:
-        """Stop now (the caller ignores stop signals meanwhile): let the renames under way end,
-        then kill every worker; the items left without a report are the stopped ones."""
-        self.closing = True
-        deadline = time.monotonic() + COMMIT_WAIT_S
-        while (movers := [w for w in self.workers if w.moving]) and time.monotonic() < deadline:
-            ready = multiprocessing.connection.wait(
-                [w.conn for w in movers] + [w.process.sentinel for w in movers],
-                timeout=deadline - time.monotonic())
-            self._handle(set(ready))
-        self.close()
-
-    def close(self) -> None:
-        """Kill the workers left (SIGKILL: they ignore SIGINT and SIGTERM), keep the reports they
-        sent before, and remove what their unfinished items had staged. Idempotent."""
-        self.closing = True
-        for worker in self.workers:
-            worker.process.kill()
-        for worker in self.workers:
-            worker.process.join()
-            self._receive(worker)
-            worker.conn.close()
-            worker.process.close()
-            if worker.index is None or self.reports[worker.index] is not None:
-                continue
-            if worker.index in self.in_place:
-                self._finish(worker.index, _committed_report(self.items[worker.index]))
-            else:
-                _discard_staged(self.items[worker.index], leftovers=True)
-        self.workers = []
-
-
-def _send(worker: _PoolWorker, message) -> None:
-    """Send to a worker; one that has just died cannot take it, and its sentinel tells."""
-    with contextlib.suppress(BrokenPipeError, ConnectionResetError):
-        worker.conn.send(message)
-
-
 def _committed_report(item: Item) -> ItemReport:
     """The report of an item whose files are all in place but whose worker died before its own
     report came back."""
     return ItemReport(str(item.input), {key: str(path) for key, path in item.outputs.items()})
-
-
-OOM_CAUSE = "the worker process ran out of memory (the kernel's OOM killer ended it)"
-
-
-def _death_cause(exitcode: int | None, oom_kills_before: int | None) -> str:
-    """Why a worker process ended, in words. Out of memory only on evidence: it was SIGKILLed
-    and the OOM killer's count (`_oom_kill_count`) rose since it took its item."""
-    if exitcode is None or exitcode >= 0:
-        return f"the worker process exited unexpectedly (exit code {exitcode})"
-    signum = -exitcode
-    oom_kills = _oom_kill_count()
-    if signum == signal.SIGKILL and None not in (oom_kills, oom_kills_before) and oom_kills > oom_kills_before:
-        return OOM_CAUSE
-    try:
-        name = signal.Signals(signum).name
-    except ValueError:
-        name = "unknown"
-    return f"the worker process died (signal {signum}, {name})"
-
-
-def _death_fix(cause: str) -> str:
-    if cause == OOM_CAUSE:
-        return "rerun with fewer --workers or a lower --resolution, and --skip-existing"
-    return "rerun with --skip-existing to do it again"
-
-
-def _oom_kill_count() -> int | None:
-    """How many processes the kernel's OOM killer has ended in this process's memory cgroup
-    (cgroup v2 memory.events, v1 memory.oom_control), or on the whole host (/proc/vmstat)
-    where the cgroup's count cannot be read; None where neither can (not Linux)."""
-    for path in _oom_counter_files():
-        try:
-            for line in path.read_text().splitlines():
-                key, _, value = line.partition(" ")
-                if key == "oom_kill":
-                    return int(value)
-        except (OSError, ValueError):
-            continue
-    return None
-
-
-def _oom_counter_files() -> list[Path]:
-    try:
-        groups = Path("/proc/self/cgroup").read_text().splitlines()  # "id:controllers:/path"
-    except OSError:
-        groups = []
-    files = []
-    for line in groups:
-        _, controllers, group = line.split(":", 2)
-        if not controllers:
-            files.append(Path("/sys/fs/cgroup", group.lstrip("/"), "memory.events"))
-        elif "memory" in controllers.split(","):
-            files.append(Path("/sys/fs/cgroup/memory", group.lstrip("/"), "memory.oom_control"))
-    return files + [Path("/proc/vmstat")]
-
-
-@contextlib.contextmanager
-def _stop_signals_blocked():
-    """SIGINT and SIGTERM blocked in this thread inside the block (where the OS can block them).
-    A process started inside inherits the mask, so a stop sent to the whole process group
-    (Ctrl-C) waits until the worker ignores it (`_pool_worker_main`) instead of ending it with
-    a traceback half-way through its start-up; this process gets what came once the block ends."""
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    from multiprocessing import resource_tracker
-
-    resource_tracker.ensure_running()  # first: starting the tracker unblocks both signals
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 @contextlib.contextmanager
@@ -932,88 +616,6 @@ class _SignalDeferral:
         if self.pending is not None:
             signum, self.pending = self.pending, None
             signal.raise_signal(signum)
-
-
-class _PoolCommit:
-    """The commit guard of a pool worker: asks the pool before item `index`'s files are renamed
-    into place and tells it once they all are. The pool answers at once unless it is stopping;
-    then it kills this worker, which has renamed nothing."""
-
-    def __init__(self, conn, index: int):
-        self.conn, self.index = conn, index
-
-    def __enter__(self):
-        self.conn.send(("commit", self.index))
-        answer = self.conn.recv()
-        if answer != "go":
-            raise RuntimeError(f"the pool answered {answer!r} to a commit")
-        return self
-
-    def __exit__(self, exc_type, exc, traceback) -> None:
-        if exc_type is None:
-            self.conn.send(("committed", self.index))
-
-
-def _pool_worker_main(conn) -> None:
-    """A pool worker process (`_Pool`): takes the worker from the pipe, sets it up, then
-    relights the items that come one by one, until None comes or the pipe closes."""
-    # Stopping is the parent's: Ctrl-C reaches the whole process group and SIGTERM may too
-    # (systemd); a worker ending on its own would lose the item it holds. Both signals have
-    # been blocked since this process started (`_stop_signals_blocked`): what came is dropped.
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, signal.SIG_IGN)
-    if hasattr(signal, "pthread_sigmask"):
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-    _die_with_parent()
-    try:
-        _serve_items(conn)
-    except (EOFError, BrokenPipeError, ConnectionResetError):
-        return  # the parent closed the pipe or died: there is nobody left to report to
-
-
-def _serve_items(conn) -> None:
-    global _STAGING_TAG
-    worker, skip_existing, overwrite, tag = pickle.loads(conn.recv_bytes())
-    _STAGING_TAG = tag  # the parent's: it removes what a dead worker staged
-    try:
-        worker.setup()
-    except RelightError as exc:
-        conn.send(("setup failed", str(exc), exc.exit_code))
-        return
-    except Exception:  # a bug: the parent raises it with this traceback
-        conn.send(("crashed", traceback.format_exc()))
-        return
-    conn.send(("ready",))
-    while (task := conn.recv()) is not None:
-        index, item = task
-        try:
-            report = _run_one(item, worker, skip_existing, overwrite, commit_guard=_PoolCommit(conn, index))
-        except Exception:  # a bug, as above
-            conn.send(("crashed", traceback.format_exc()))
-            return
-        conn.send(("report", index, report))
-
-
-PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
-
-
-def _die_with_parent() -> None:
-    """End this worker process when the batch's process ends, however it ends (kill -9 too): a
-    worker left behind keeps its memory and goes on writing outputs that nobody will report.
-    On Linux the kernel sends SIGKILL (PR_SET_PDEATHSIG; if the parent died before the call,
-    this process has been handed to another already); everywhere, a thread waits for the
-    parent's end of the spawn pipe to close."""
-    parent = multiprocessing.parent_process()
-    if sys.platform.startswith("linux"):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
-        if os.getppid() != parent.pid:
-            os._exit(1)
-    threading.Thread(target=_exit_after, args=(parent,), name="relight-parent-watch", daemon=True).start()
-
-
-def _exit_after(parent) -> None:
-    parent.join()  # returns once the parent has ended
-    os._exit(1)
 
 
 def _run_one(item: Item, worker, skip_existing: bool, overwrite: bool,
@@ -1215,179 +817,3 @@ def summary(reports: list[ItemReport]) -> dict:
         out["stopped"] = stopped
     out["items"] = [r.as_dict() for r in reports]
     return out
-
-
-RAY_TIMEOUT_S = 30.0  # how long a Ray cluster named by --address may take to answer
-
-
-def run_items_ray(
-    items: list[Item],
-    worker,
-    *,
-    workers: int,
-    threads_per_worker: int,
-    address: str | None = None,
-    skip_existing: bool = False,
-    overwrite: bool = False,
-    timeout_s: float = RAY_TIMEOUT_S,
-) -> list[ItemReport]:
-    """The same job on Ray Data: a pool of `workers` stateful actors, each holding one `worker`
-    (models loaded once per actor), fed file paths; decoding happens inside the actors with our
-    own I/O (Ray's image reader drops EXIF orientation, 16-bit and EXR).
-
-    address: an existing cluster ("auto", "ray://host:10001"), which must answer within
-    `timeout_s` seconds; None starts a local instance with `workers * threads_per_worker` CPUs.
-    On a cluster, inputs and outputs must live on a filesystem every node sees at the same
-    path. Reports come back in input order. A KeyboardInterrupt stops the batch as in
-    `run_items`: `Stopped` carries the reports of the items done, the others marked stopped.
-    """
-    ray = _import_ray(address)
-    started_here = not ray.is_initialized()
-    if started_here:
-        _start_ray(ray, address, workers * threads_per_worker, timeout_s)
-    reports: list[ItemReport | None] = [None] * len(items)
-    start_ns = time.time_ns()
-    try:
-        remove_dead_runs_staging(items)
-        for row in _ray_dataset(ray, items, worker, workers, threads_per_worker, skip_existing,
-                                overwrite).iter_rows():  # each report as its item finishes
-            reports[int(row["index"])] = ItemReport(**json.loads(str(row["report"])))
-    except KeyboardInterrupt as interrupt:
-        _shut_down_ray(ray, items, started_here)
-        for index, item in enumerate(items):
-            if reports[index] is None and _written_since(item, start_ns):
-                reports[index] = _committed_report(item)  # in place before its report came back
-        raise _stopped(interrupt, items, reports) from None
-    finally:
-        _shut_down_ray(ray, items, started_here)
-    missing = [items[i].input for i, r in enumerate(reports) if r is None]
-    if missing:
-        raise RelightError(f"Ray returned no result for {len(missing)} item(s), e.g. {missing[0]}")
-    return reports
-
-
-def _shut_down_ray(ray, items: list[Item], started_here: bool) -> None:
-    """End the Ray instance this batch started (its actors killed), then remove what those
-    actors had staged on this machine. Idempotent."""
-    if started_here and ray.is_initialized():
-        with _signals_ignored():  # a second Ctrl-C must not leave Ray's processes running
-            ray.shutdown()
-        remove_dead_runs_staging(items)
-
-
-def _written_since(item: Item, start_ns: int) -> bool:
-    """Every output of `item` is a file written since `start_ns` (time.time_ns): a Ray actor
-    committed it, whether or not its report reached this process."""
-    try:
-        return all(path.stat().st_mtime_ns >= start_ns for path in item.outputs.values())
-    except OSError:
-        return False
-
-
-def _import_ray(address: str | None):
-    try:
-        import ray
-        import ray.data
-    except ImportError as exc:
-        raise MissingDependencyError(
-            "--engine ray needs the optional 'ray' extra",
-            fix="pip install 'relightcli[ray]', or use the default local engine",
-        ) from exc
-    if address and address.startswith("ray://") and importlib.util.find_spec("grpc") is None:
-        raise MissingDependencyError(
-            f"--address {address} connects through Ray Client, which needs the 'ray[client]' extra",
-            fix="pip install 'ray[client]', or run relight on a node of the cluster with --address auto")
-    return ray
-
-
-def _start_ray(ray, address: str | None, num_cpus: int, timeout_s: float) -> None:
-    """Connect to the cluster at `address`, or start a local one (None). The connection is
-    tried in a thread of its own and abandoned after `timeout_s` (ray.init retries an address
-    where nothing answers for minutes), and from there Ray installs no signal handlers; a local
-    start installs SIGTERM handlers that end the process with sys.exit, so it runs here, with
-    this process's own handlers put back after it."""
-    if address is None:
-        package_root = str(Path(__file__).resolve().parents[1])
-        with _own_stop_handlers_kept():
-            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False, runtime_env={"env_vars": {"PYTHONPATH": package_root}})
-        return
-    failure: list[BaseException] = []
-
-    def connect() -> None:
-        try:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False, configure_logging=False)
-        except Exception as exc:  # reported to the main thread, which raises it as ours
-            failure.append(exc)
-
-    fix = ("check --address and that the cluster runs (`ray status` on its head node), raise "
-           "--ray-timeout, or drop --address to start Ray on this machine")
-    attempt = threading.Thread(target=connect, name="relight-ray-connect", daemon=True)
-    ray_worker_log = logging.getLogger("ray._private.worker")
-    ray_worker_log.addFilter(_no_sigterm_notice)  # Ray's notice that it leaves SIGTERM to us
-    attempt.start()
-    attempt.join(timeout_s)
-    if attempt.is_alive():  # abandoned, still trying: the process ends without it
-        raise UsageError(f"no Ray cluster answered at {address} within {timeout_s:g} s", fix=fix)
-    ray_worker_log.removeFilter(_no_sigterm_notice)
-    if failure:
-        text = str(failure[0]).strip() or type(failure[0]).__name__
-        raise UsageError(f"cannot connect to a Ray cluster at {address} ({text.splitlines()[0]})",
-                         fix=fix) from failure[0]
-
-
-def _no_sigterm_notice(record: logging.LogRecord) -> bool:
-    return not str(record.msg).startswith("SIGTERM handler is not set")
-
-
-@contextlib.contextmanager
-def _own_stop_handlers_kept():
-    """This process's SIGINT and SIGTERM handlers put back after the block (ray.init replaces
-    SIGTERM's with one that ends the process by sys.exit); a SystemExit raised by Ray's handler
-    inside the block is the SIGTERM that stops the batch."""
-    on_main_thread = threading.current_thread() is threading.main_thread()
-    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
-    try:
-        yield
-    except SystemExit:
-        raise Stopped(signal.SIGTERM) from None
-    finally:
-        for signum, handler in previous.items():
-            if on_main_thread and handler is not None:
-                signal.signal(signum, handler)
-
-
-def _ray_dataset(ray, items, worker, workers, threads_per_worker, skip_existing, overwrite):
-    rows = [
-        {"index": index, "input": str(item.input),
-         "outputs": json.dumps({k: str(v) for k, v in item.outputs.items()}),
-         "mask": "" if item.mask is None else str(item.mask)}
-        for index, item in enumerate(items)
-    ]
-    return ray.data.from_items(rows).map_batches(
-        _RayItemActor,
-        fn_constructor_args=(worker, skip_existing, overwrite),
-        batch_size=1,
-        concurrency=min(workers, len(items)),
-        num_cpus=threads_per_worker,
-        batch_format="numpy",
-    )
-
-
-class _RayItemActor:
-    """A Ray Data actor: sets the worker up once, then processes one item per call."""
-
-    def __init__(self, worker, skip_existing: bool, overwrite: bool):
-        worker.setup()
-        self.worker, self.skip_existing, self.overwrite = worker, skip_existing, overwrite
-
-    def __call__(self, batch: dict) -> dict:
-        import numpy as np
-
-        reports = []
-        for path, outputs, mask in zip(batch["input"], batch["outputs"], batch["mask"]):
-            item = Item(Path(str(path)), {k: Path(v) for k, v in json.loads(str(outputs)).items()},
-                        Path(str(mask)) if str(mask) else None)
-            report = _run_one(item, self.worker, self.skip_existing, self.overwrite)
-            reports.append(json.dumps(asdict(report)))
-        return {"index": batch["index"], "report": np.array(reports, dtype=object)}

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from relightcli import batch
+from relightcli import batch, pool
 from relightcli.batch import Item, ItemReport
 from relightcli.errors import MissingDependencyError
 
@@ -66,14 +66,14 @@ _CURRENT = None  # the photo a pool worker process is relighting (FakeWorker)
 def _die_after_a_late_commit() -> None:
     """In a pool worker process: a 'late*' item's worker dies right after renaming its files
     into place, before it tells the pool (deterministic, unlike a thread watching the files)."""
-    rename = batch._PoolCommit.__exit__
+    rename = pool._PoolCommit.__exit__
 
     def exit_then_die(commit, exc_type, exc, traceback):
         if exc_type is None and str(_CURRENT).startswith("late"):
             os.kill(os.getpid(), signal.SIGKILL)
         rename(commit, exc_type, exc, traceback)
 
-    batch._PoolCommit.__exit__ = exit_then_die
+    pool._PoolCommit.__exit__ = exit_then_die
 
 
 def make_items(out: Path, names) -> list[Item]:
@@ -85,7 +85,7 @@ def make_items(out: Path, names) -> list[Item]:
 def run_pool(tmp_path, names, worker=None, oom_kills=lambda: 0, monkeypatch=None):
     """Runs `names` on two workers; returns {name: report} and the names of the files in out."""
     if monkeypatch is not None:
-        monkeypatch.setattr(batch, "_oom_kill_count", oom_kills)
+        monkeypatch.setattr(pool, "_oom_kill_count", oom_kills)
     out = tmp_path / "out"
     out.mkdir()
     done = []
@@ -136,7 +136,7 @@ def test_workers_that_die_starting_are_not_replaced_forever(tmp_path):
     assert files == []
     assert all("worker processes in a row ended before they were ready" in r.error and
                "signal 9" in r.error and "--workers 1" in r.error for r in reports.values())
-    assert len(list(starts.iterdir())) <= batch.START_DEATHS_LIMIT + 1  # two workers, one more at most
+    assert len(list(starts.iterdir())) <= pool.START_DEATHS_LIMIT + 1  # two workers, one more at most
 
 
 def test_a_set_up_error_fails_every_item_with_its_message(tmp_path):
@@ -188,7 +188,7 @@ def wait_until_gone(marker: str, bound_s: float = 60.0) -> list[str]:
 POOL_DRIVER = """
 import os, signal, sys
 from pathlib import Path
-from relightcli import batch
+from relightcli import batch, pool
 from test_worker_death import FakeWorker, make_items
 
 # One worker sleeps in its item; this process dies (kill -9) when the other's item is done.
@@ -216,12 +216,12 @@ def test_workers_die_with_their_parent(tmp_path):
 
 WATCH_DRIVER = """
 import multiprocessing, os, signal, sys, threading, time
-from relightcli import batch
+from relightcli import batch, pool
 
 
 def watched_child(ready):
     # Only the portable watch: no PR_SET_PDEATHSIG in this child
-    threading.Thread(target=batch._exit_after, args=(multiprocessing.parent_process(),), daemon=True).start()
+    threading.Thread(target=pool._exit_after, args=(multiprocessing.parent_process(),), daemon=True).start()
     ready.set()
     time.sleep(600)
 

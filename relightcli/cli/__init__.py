@@ -458,7 +458,9 @@ def run_relight(args) -> int:
             if not runnable:
                 reports = []
             elif args.engine == "ray":
-                reports = batch.run_items_ray(
+                from relightcli.ray_engine import run_items_ray
+
+                reports = run_items_ray(
                     runnable, worker, workers=workers, threads_per_worker=options.threads,
                     address=args.address, skip_existing=args.skip_existing, overwrite=args.overwrite,
                     timeout_s=args.ray_timeout)
