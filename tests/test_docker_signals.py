@@ -17,11 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from relightcli import cli
-from relightcli.io.images import write_image
+from tests.test_batch_stop import make_photos
 
 REPO = Path(__file__).resolve().parents[1]
 # Tiny RGBA photos (the alpha is the mask, so no mask net) at a tiny working resolution: about
@@ -37,14 +36,7 @@ def relight_command() -> list[str]:
 
 
 def make_job(root: Path, count: int) -> list[str]:
-    folder = root / "in"
-    folder.mkdir()
-    rng = np.random.default_rng(5)
-    for index in range(count):
-        rgb = rng.uniform(0.0, 1.0, (40, 36, 3)).astype(np.float32)
-        alpha = np.clip(rng.normal(0.6, 0.4, (40, 36)), 0, 1).astype(np.float32)
-        write_image(folder / f"p{index:03d}.png", rgb, alpha, bits=16)
-    write_image(root / "env.hdr", np.ones((4, 8, 3), np.float32))
+    folder = make_photos(root, count)
     return [str(folder), "--hdr", str(root / "env.hdr"), "-o", str(root / "out"), *FAST]
 
 
