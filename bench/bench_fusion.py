@@ -127,7 +127,7 @@ def hidden_body_points(frame, triangles, shift, front, back):
 
 def recon_mesh(frame, triangles, front, back):
     """The shipped reconstruction itself (its `_mean` row is the shipped shading: a check)."""
-    return frame.mesh, {}
+    return frame.mesh.to_trimesh(), {}
 
 
 def poisson_mesh(frame, triangles, front, back):
@@ -135,7 +135,7 @@ def poisson_mesh(frame, triangles, front, back):
 
     shift = body_offset(frame, front)
     points, normals = hidden_body_points(frame, triangles, shift, front, back)
-    recon = frame.mesh
+    recon = frame.mesh.to_trimesh()
     all_points = np.concatenate([recon.vertices, points])
     all_normals = np.concatenate([recon.vertex_normals, normals])
     ms = pymeshlab.MeshSet()

@@ -98,17 +98,17 @@ def variants(truth, sigma, rng):
     noisy_back = m.back_depth + rng.normal(0.0, sigma, m.back_depth.shape)
 
     def build(front, back):
-        return reconstruct_mesh(m.mask, front, back, m.rect)
+        return reconstruct_mesh(m.mask, front, back, m.rect).to_trimesh()
 
     def from_normals():
         front, back = double_sided_depth(m.front_normal, m.back_normal, m.mask, m.rect)
         shift = np.mean(m.front_depth[m.mask] - front[m.mask])
-        return smooth_mesh(reconstruct_mesh(m.mask, front + shift, back + shift, m.rect))
+        return smooth_mesh(reconstruct_mesh(m.mask, front + shift, back + shift, m.rect).to_trimesh())
 
     def from_noisy_fusion():
         front = integrate_normals(m.front_normal, m.mask, m.rect, depth_prior=noisy_front)
         back = integrate_normals(m.back_normal, m.mask, m.rect, depth_prior=noisy_back)
-        return smooth_mesh(reconstruct_mesh(m.mask, front, back, m.rect))
+        return smooth_mesh(reconstruct_mesh(m.mask, front, back, m.rect).to_trimesh())
 
     return {
         "depth": lambda: smooth_mesh(build(m.front_depth, m.back_depth)),
@@ -137,7 +137,7 @@ def main():
           f"{args.size}x{args.size}, {truth.mask.sum()} mask pixels, pixel {pixel:.4f}")
 
     m = truth
-    build = lambda: reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect)  # noqa: E731
+    build = lambda: reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect).to_trimesh()  # noqa: E731
     best_b, med_b, mesh = time_best(build, args.repeats)
     best_s, med_s, _ = time_best(lambda: smooth_mesh(mesh), args.repeats)
     best_t, med_t, _ = time_best(lambda: smooth_mesh(build()), args.repeats)

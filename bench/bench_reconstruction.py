@@ -45,8 +45,8 @@ def meshes(mask, front_pred, back_pred, front_gt, back_gt):
     front_s = smooth_depth(front_pred, mask, sigma)
     back_s = np.minimum(smooth_depth(back_pred, mask, sigma), front_s)
     return {
-        "runtime": smooth_mesh(reconstruct_mesh(mask, front_s, back_s, RECT)),
-        "paper_steps_only": smooth_mesh(reconstruct_mesh(mask, front_pred, np.minimum(back_pred, front_pred), RECT)),
+        "runtime": smooth_mesh(reconstruct_mesh(mask, front_s, back_s, RECT).to_trimesh()),
+        "paper_steps_only": smooth_mesh(reconstruct_mesh(mask, front_pred, np.minimum(back_pred, front_pred), RECT).to_trimesh()),
         "truth": reconstruct_mesh(mask, front_gt, np.minimum(back_gt, front_gt), RECT),
     }
 

@@ -66,7 +66,7 @@ class Result:
         from relightcli.stages.compose import layer_image, preview_tiles
 
         if name == "mesh":
-            return self.frame.mesh
+            return self.frame.mesh.to_trimesh()
         if name == "light":
             return self.frame.light
         if name == "preview":

@@ -41,6 +41,18 @@ STAGE_NEEDS = {
     "compose": ("crop",),  # relit = albedo * shading, pasted back
 }
 
+# The network families each stage uses in the usual case (a person found, a body fitted); the
+# sessions of a plan's stages are created ahead on a background thread (Models.prefetch).
+STAGE_MODELS = {
+    "people": ("person_detector", "pose_landmarks"),
+    "geometry": ("geometry_prior",),  # "geometry" when no body fit converges
+    "ao": ("ao",),
+    "delight": ("delight",),
+    "face": ("face_detector", "face_mesh"),
+    "refine": ("body_refine",),
+    "face_refine": ("face_refine",),
+}
+
 # Which stage produces the shading for each method.
 SHADING_STAGE = {"raytrace": "face_refine", "raytrace-norefine": "raytrace", "sh9": "sh_shading",
                  "sh25": "sh_shading"}
@@ -134,6 +146,16 @@ def plan_stages(options: RelightOptions, *, has_alpha: bool) -> Plan:
     return Plan(run, skipped)
 
 
+def planned_models(options: RelightOptions) -> list[str]:
+    """The network families the plan's stages use, in the order they are first needed: the
+    stages that run with or without the input's own mask (a mask can leave out `people`)."""
+    stages = set(plan_stages(options, has_alpha=True).run) & set(plan_stages(options, has_alpha=False).run)
+    families = [family for stage in STAGE_NEEDS if stage in stages for family in STAGE_MODELS.get(stage, ())]
+    if "geometry_prior" in families and not _ships("geometry_prior"):
+        families[families.index("geometry_prior")] = "geometry"
+    return families
+
+
 def _ships(model: str) -> bool:
     """Whether the models folder describes `model` (the face refinement: the face stage's
     consumer; the geometry prior net: the body maps')."""
@@ -150,18 +172,26 @@ class RelightWorker:
     """Relights items one after another; picklable, so a process pool or a Ray actor can hold
     one. `setup()` prepares what every item of the batch shares (threads, model sessions)."""
 
-    def __init__(self, env, options: RelightOptions):
+    def __init__(self, env, options: RelightOptions, models=None):
         self.env, self.options = env, options
-        self.models = None
+        self.models = models
 
     def setup(self) -> None:
-        self.models = load_models(self.options.threads)
+        if self.models is None:
+            self.models = prepared_models(self.options)
 
     def __call__(self, item: Item) -> ItemReport:
         return relight_item(item, self.env, self.options, self.models)
 
     def __getstate__(self):
         return {"env": self.env, "options": self.options, "models": None}  # sessions stay per process
+
+
+def prepared_models(options: RelightOptions):
+    """`load_models`, with the sessions the plan uses being created on a background thread."""
+    models = load_models(options.threads)
+    models.prefetch(planned_models(options))
+    return models
 
 
 def load_models(threads: int):

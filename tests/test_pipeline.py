@@ -412,7 +412,7 @@ def test_raytraced_ball_under_constant_light_is_white_furnace(stand_in_normals):
     frame, plan = run_stages(image, mask, env, options, ItemReport("x"), SphereModels())
     assert plan.run == ["people", "mask", "crop", "body", "body_maps", "geometry", "reconstruct", "raytrace"]
     assert frame.bodies == [] and "no converged body fit" in frame.notes["raytrace"]["body"]
-    assert frame.mesh.is_watertight
+    assert frame.mesh.to_trimesh().is_watertight
     # The square mask makes a slab around the ball: the ball's top cap sees the whole
     # hemisphere (shading == L exactly), its rim is shadowed by the slab (below L, never above).
     centres = -1.0 + (np.arange(48) + 0.5) * 2.0 / 48

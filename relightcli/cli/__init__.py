@@ -427,7 +427,7 @@ def _refuse_alpha_loss(items, background: str) -> None:
 
 def run_relight(args) -> int:
     from relightcli import batch
-    from relightcli.pipeline import RelightOptions, RelightWorker
+    from relightcli.pipeline import RelightOptions, RelightWorker, prepared_models
 
     if args.address and args.engine != "ray":
         raise UsageError("--address goes with --engine ray", fix="add --engine ray or drop --address")
@@ -437,7 +437,6 @@ def run_relight(args) -> int:
     items, refused = _plan_relight(args)
     runnable = [item for index, item in enumerate(items) if index not in refused]
     batch.prepare_output_dirs(runnable)
-    env, env_warnings = _load_environment(args)
     # One process per core by default; threads are split so workers x threads <= cores.
     workers = max(1, min(args.workers or default_workers(threads), len(runnable)))
     options = RelightOptions(
@@ -448,8 +447,16 @@ def run_relight(args) -> int:
         threads=max(1, threads // workers),
         background=args.background, max_pixels=args.max_pixels, resolution=args.resolution,
         turntable=args.turntable)
-
-    worker = RelightWorker(env, options)
+    # Items relit in this process: the nets' sessions build on a background thread from here on,
+    # while the map loads and the first stages run
+    models = prepared_models(options) if runnable and workers == 1 and args.engine == "local" else None
+    try:
+        env, env_warnings = _load_environment(args)
+    except BaseException:
+        if models is not None:
+            models.stop_prefetch()
+        raise
+    worker = RelightWorker(env, options, models)
     progress = _Progress(len(items), enabled=args.engine == "local" and sys.stderr.isatty() and not args.json)
     for index in refused:
         progress.step(items[index].input)
@@ -474,6 +481,8 @@ def run_relight(args) -> int:
         reports = stopped.reports  # finished items, the rest marked stopped; exit_code: 130 / 143
     finally:
         progress.close()
+        if worker.models is not None:
+            worker.models.stop_prefetch()
     reports = _with_refused(items, refused, reports)
     for report in reports:
         report.warnings[:0] = env_warnings

@@ -210,10 +210,12 @@ def render_face_shading(fit: FaceFit, light, *, resolution: int | None = None, s
     pixels that see the face proper, not the neck or the back of the head).
     """
     from relightcli.render import Scene, render_pixel_geometry, shade_environment
+    from relightcli.render.scene import corner_angle_normals
 
     size = int(resolution or fit.resolution[0])
     mesh = face_mesh(fit)
-    with Scene.from_trimesh(mesh, threads=threads) as scene:
+    normals = corner_angle_normals(mesh.vertices, mesh.faces)
+    with Scene(mesh.vertices, mesh.faces, vertex_normals=normals, threads=threads) as scene:
         geometry = render_pixel_geometry(scene, fit.rect, (size, size))
         result = shade_environment(scene, geometry, light, spp=spp, target_error=target_error,
                                    seed=seed, workers=threads)

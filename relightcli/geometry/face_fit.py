@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import trimesh
 
 from relightcli.errors import InputError, NumericalError
 from relightcli.geometry.face_model import FaceModel, pixel_to_world, transform, world_to_pixel
@@ -107,15 +106,18 @@ def fit_face(landmarks_px, model: FaceModel, rect, resolution, *, weights=None, 
     return fit
 
 
-def face_mesh(fit: FaceFit, *, face_only: bool = False) -> trimesh.Trimesh:
-    """The fitted face as a mesh in the crop's camera frame (world units, +Z to the viewer),
-    pixel-aligned with the crop. face_only keeps the face region (no back of head, no neck)."""
+def face_mesh(fit: FaceFit, *, face_only: bool = False):
+    """The fitted face as a geometry.mesh.TriangleMesh in the crop's camera frame (world units,
+    +Z to the viewer), pixel-aligned with the crop. face_only keeps the face region (no back of
+    head, no neck)."""
+    from relightcli.geometry.mesh import TriangleMesh
+
     vertices, triangles = fit.vertices(), fit.model.triangles
     if face_only:
         keep = np.all(fit.model.face_region[triangles], axis=1)
         used, triangles = np.unique(triangles[keep], return_inverse=True)
         vertices, triangles = vertices[used], triangles.reshape(-1, 3)
-    return trimesh.Trimesh(vertices, triangles, process=False)
+    return TriangleMesh(vertices, triangles)
 
 
 # ---------------------------------------------------------------------------- steps

@@ -26,10 +26,11 @@ import os
 import secrets
 from pathlib import Path
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
-import trimesh
 
 from relightcli.errors import InputError, OutputError, UsageError
 from relightcli.render.camera import pixel_centres
@@ -37,8 +38,23 @@ from relightcli.render.camera import pixel_centres
 MESH_FORMATS = {".ply": "ply", ".glb": "glb", ".obj": "obj"}
 
 
+class TriangleMesh(NamedTuple):
+    """A mesh as arrays: (V, 3) float64 vertices, (F, 3) int faces. The pipeline keeps its
+    meshes so; `to_trimesh()` makes a trimesh.Trimesh (process=False) for a mesh file or the
+    Python API: trimesh and the networkx it pulls in take ~0.25 s to import, so only the runs
+    that hand a mesh out load them."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    def to_trimesh(self):
+        import trimesh
+
+        return trimesh.Trimesh(vertices=self.vertices, faces=self.faces, process=False)
+
+
 def reconstruct_mesh(mask, front_depth, back_depth, rect, *, min_thickness: float = 0.0,
-                     mask_threshold: float = 0.5) -> trimesh.Trimesh:
+                     mask_threshold: float = 0.5) -> TriangleMesh:
     """Closed mesh of the person from front and back depth maps.
 
     mask: (H, W) bool or float in [0, 1] (pixels > mask_threshold are inside).
@@ -46,8 +62,8 @@ def reconstruct_mesh(mask, front_depth, back_depth, rect, *, min_thickness: floa
     the pixel's ray (front = larger z), finite on the mask. rect: (x0, x1, y0, y1) world
     rectangle the crop covers. min_thickness: world units; the back depth is clamped to at most
     front - min_thickness (a back surface in front of the front one is not a surface).
-    Returns a trimesh.Trimesh (float64 vertices in the crop's camera/world frame, outward
-    winding, watertight), built with process=False so no vertex is merged.
+    Returns a TriangleMesh (float64 vertices in the crop's camera/world frame, outward
+    winding, watertight; `to_trimesh()` merges no vertex).
     Raises InputError for mismatched shapes, non-finite depths on the mask, or a mask with no
     2x2 block of pixels.
     """
@@ -68,7 +84,7 @@ def reconstruct_mesh(mask, front_depth, back_depth, rect, *, min_thickness: floa
     n = pixel.size
     side = _side_strip(_half_edges(faces)[boundary], n)
     all_faces = np.concatenate([faces, faces[:, ::-1] + n, side])
-    return trimesh.Trimesh(vertices=vertices, faces=all_faces, process=False)
+    return TriangleMesh(vertices, all_faces)
 
 
 def covered_pixels(mask, *, mask_threshold: float = 0.5) -> np.ndarray:
@@ -84,15 +100,18 @@ def covered_pixels(mask, *, mask_threshold: float = 0.5) -> np.ndarray:
     return covered & inside
 
 
-def save_mesh(mesh: trimesh.Trimesh, path) -> Path:
-    """Write a mesh as .ply, .glb or .obj, atomically: a temporary file in the same folder,
-    then os.replace, so a reader never sees a half-written file. Returns the path.
-    Raises UsageError for another suffix, OutputError when the folder cannot be written."""
+def save_mesh(mesh, path) -> Path:
+    """Write a mesh (a TriangleMesh or a trimesh.Trimesh) as .ply, .glb or .obj, atomically: a
+    temporary file in the same folder, then os.replace, so a reader never sees a half-written
+    file. Returns the path. Raises UsageError for another suffix, OutputError when the folder
+    cannot be written."""
     path = Path(path)
     file_type = MESH_FORMATS.get(path.suffix.lower())
     if file_type is None:
         raise UsageError(f"cannot write a mesh as '{path.suffix}'", path=path,
                          fix="use a .ply, .glb or .obj file name")
+    if isinstance(mesh, TriangleMesh):
+        mesh = mesh.to_trimesh()
     data = mesh.export(file_type=file_type)
     data = data.encode("utf-8") if isinstance(data, str) else data
     try:

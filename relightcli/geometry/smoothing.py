@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse
-import trimesh
 
 from relightcli.errors import InputError, NumericalError
 
@@ -33,17 +32,20 @@ MAX_COTANGENT = 100.0
 UNIFORM_WEIGHT = 1e-6
 
 
-def smooth_mesh(mesh: trimesh.Trimesh, *, steps: int = PAPER_STEPS,
-                step_size: float = 0.5) -> trimesh.Trimesh:
+def smooth_mesh(mesh, *, steps: int = PAPER_STEPS, step_size: float = 0.5):
     """A copy of `mesh` after `steps` cotangent-Laplacian steps (faces unchanged).
 
-    mesh: trimesh.Trimesh, any units. step_size: fraction of the way to the weighted
-    neighbour mean per step, in (0, 1]. Returns a new trimesh.Trimesh (process=False).
+    mesh: a geometry.mesh.TriangleMesh or a trimesh.Trimesh, any units; the result is of the
+    same kind (a Trimesh with process=False). step_size: fraction of the way to the weighted
+    neighbour mean per step, in (0, 1].
     Raises InputError for bad options or non-finite vertices, NumericalError if the result is
     not finite (it cannot be, by construction: checked, not assumed).
     """
+    from relightcli.geometry.mesh import TriangleMesh
+
     vertices = smooth_vertices(mesh.vertices, mesh.faces, steps=steps, step_size=step_size)
-    return trimesh.Trimesh(vertices=vertices, faces=np.array(mesh.faces), process=False)
+    smoothed = TriangleMesh(vertices, np.array(mesh.faces))
+    return smoothed if isinstance(mesh, TriangleMesh) else smoothed.to_trimesh()
 
 
 def smooth_vertices(vertices, faces, *, steps: int = PAPER_STEPS,

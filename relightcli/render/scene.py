@@ -254,6 +254,29 @@ def _face_normals(vertices, faces):
     return (n / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
+def corner_angle_normals(vertices, faces) -> np.ndarray:
+    """(V, 3) float64 unit vertex normals: the faces' unit normals weighted by their corner's
+    angle at the vertex (Thuerrner and Wuethrich 1998; trimesh's `vertex_normals`, which the
+    face's shading used before). Faces without a normal (zero area) count nothing; a vertex of
+    none gets zero."""
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces)
+    tri = vertices[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), 0.0)
+    angles = np.empty(faces.shape)
+    for k in range(3):  # the angle at corner k between its two edges
+        a, b = tri[:, (k + 1) % 3] - tri[:, k], tri[:, (k + 2) % 3] - tri[:, k]
+        a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300)
+        b /= np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300)
+        angles[:, k] = np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0))
+    weights = angles * (length > 0)
+    summed = np.stack([np.bincount(faces.ravel(), weights=(weights * normal[:, [k]]).ravel(),
+                                   minlength=len(vertices)) for k in range(3)], axis=1)
+    total = np.linalg.norm(summed, axis=1, keepdims=True)
+    return summed / np.where(total > 0, total, 1.0)
+
+
 def _vertex_normals(vertices, faces, given):
     """(V, 3) float32 unit normals: the given ones, else area-weighted face normals."""
     if given is not None:

@@ -31,7 +31,7 @@ class Frame:
     albedo: np.ndarray | None = None  # (R, R, 3)
     light: np.ndarray | None = None  # (16, 32, 3) estimated input lighting
     input_shading: np.ndarray | None = None  # (R, R, 3) what the photo was divided by (--albedo solve, ratio)
-    mesh: object | None = None  # trimesh.Trimesh in the crop camera frame
+    mesh: object | None = None  # geometry.mesh.TriangleMesh in the crop camera frame
     scene: object | None = None  # relightcli.render.scene.Scene of the mesh (closed by the pipeline)
     hits: object | None = None  # relightcli.render.camera.PixelGeometry: what each crop pixel sees
     coarse_shading: np.ndarray | None = None  # (R, R, 3) ray-traced
@@ -103,10 +103,37 @@ class PerceptionView:
 
 class Models:
     """Network sessions, created on first use (only the stages a plan runs load theirs) and
-    kept for every later item of the batch."""
+    kept for every later item of the batch. `prefetch` creates the sessions a plan will use on
+    a background thread while the process goes on: ONNX Runtime builds a session without the
+    GIL (0.4-0.5 s for the default plan's nine on 2 cores), so it overlaps the imports and the
+    first stages."""
 
     def __init__(self, threads: int):
         self.threads, self._sessions, self._lights = threads, {}, {}
+        self._pending, self._executor = {}, None  # family -> Future of its session
+
+    def prefetch(self, families) -> None:
+        """Start creating these families' sessions, in order, on one background thread; `get`
+        waits for a pending one, and raises what its creation raised."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from relightcli.nets.session import import_onnxruntime
+
+        _session_classes()
+        import_onnxruntime()
+        families = [f for f in dict.fromkeys(families) if f not in self._sessions and f not in self._pending]
+        if not families:
+            return
+        self._executor = self._executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix="relight-models")
+        for family in families:
+            self._pending[family] = self._executor.submit(self._create, family)
+
+    def stop_prefetch(self) -> None:
+        """Drop the sessions not yet started (a run that ends early does not wait for them)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+            self._pending = {f: p for f, p in self._pending.items() if not p.cancelled()}
 
     def light(self, env: np.ndarray):
         """The environment's sampling distribution, built once per map and kept (a batch or a
@@ -134,21 +161,30 @@ class Models:
 
     def get(self, family: str):
         if family not in self._sessions:
-            from relightcli.nets.delight import DelightNet
-            from relightcli.nets.face_mesh import FaceDetector, FaceMesh
-            from relightcli.nets.geometry import AONet, AOPriorNet, GeometryNet, GeometryPriorNet
-            from relightcli.nets.pose import PersonDetector, PoseLandmarker
-            from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
-            from relightcli.nets.selfie import SelfieSegmenter
-
-            classes = {"geometry": GeometryNet, "geometry_prior": GeometryPriorNet, "ao": AONet,
-                       "ao_prior": AOPriorNet, "delight": DelightNet,
-                       "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
-                       "person_detector": PersonDetector, "pose_landmarks": PoseLandmarker,
-                       "face_detector": FaceDetector, "face_mesh": FaceMesh,
-                       "selfie_segmentation": SelfieSegmenter}
-            self._sessions[family] = classes[family](threads=self.threads)
+            pending = self._pending.pop(family, None)
+            self._sessions[family] = pending.result() if pending is not None else self._create(family)
         return self._sessions[family]
+
+    def _create(self, family: str):
+        return _session_classes()[family](threads=self.threads)
+
+
+def _session_classes() -> dict:
+    """Each model family's session class. Imported here, on the calling thread: `prefetch`
+    imports them (and ONNX Runtime) before its thread starts, so that thread only builds."""
+    from relightcli.nets.delight import DelightNet
+    from relightcli.nets.face_mesh import FaceDetector, FaceMesh
+    from relightcli.nets.geometry import AONet, AOPriorNet, GeometryNet, GeometryPriorNet
+    from relightcli.nets.pose import PersonDetector, PoseLandmarker
+    from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
+    from relightcli.nets.selfie import SelfieSegmenter
+
+    return {"geometry": GeometryNet, "geometry_prior": GeometryPriorNet, "ao": AONet,
+            "ao_prior": AOPriorNet, "delight": DelightNet,
+            "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
+            "person_detector": PersonDetector, "pose_landmarks": PoseLandmarker,
+            "face_detector": FaceDetector, "face_mesh": FaceMesh,
+            "selfie_segmentation": SelfieSegmenter}
 
 
 def person_support(frame: Frame) -> np.ndarray:

@@ -147,7 +147,7 @@ def test_wrong_landmark_shape_is_an_input_error(model):
 def test_fitted_mesh_projects_onto_the_landmarks(model):
     pixels, _ = synthetic_face(model, 12, (20, -5, 10))
     fit = fit_face(pixels, model, RECT, RESOLUTION, landmark_sigma_px=0.1)
-    mesh = face_mesh(fit)
+    mesh = face_mesh(fit).to_trimesh()
     projected = world_to_pixel(mesh.vertices[model.landmark_indices], RECT, RESOLUTION)
     assert np.abs(projected - pixels).max() < 0.25
 
@@ -158,7 +158,7 @@ def test_ray_cast_mesh_is_pixel_aligned_at_the_nose_tip(model):
 
     pixels, _ = synthetic_face(model, 13, (0, 0, 0))
     fit = fit_face(pixels, model, RECT, RESOLUTION, landmark_sigma_px=0.1)
-    mesh = face_mesh(fit)
+    mesh = face_mesh(fit).to_trimesh()
     scene = Scene.from_trimesh(mesh)
     geometry = render_pixel_geometry(scene, RECT, RESOLUTION)
     col, row = np.rint(pixels[30]).astype(int)
@@ -207,7 +207,7 @@ def test_white_furnace_on_the_forehead(model):
 
     pixels, _ = synthetic_face(model, 16, (0, 0, 0))
     fit = fit_face(pixels, model, RECT, RESOLUTION, landmark_sigma_px=0.1)
-    scene = Scene.from_trimesh(face_mesh(fit))
+    scene = Scene.from_trimesh(face_mesh(fit).to_trimesh())
     geometry = render_pixel_geometry(scene, RECT, RESOLUTION)
     # Forehead: above the brows, between the outer brow ends, facing the camera
     lm = fit.landmarks_px()

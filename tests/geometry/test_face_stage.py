@@ -104,7 +104,7 @@ def test_face_shading_is_aligned_with_the_fitted_landmarks(fitted):
     from relightcli.geometry.face_fit import face_mesh
     from relightcli.render import Scene, render_pixel_geometry
 
-    seen = render_pixel_geometry(Scene.from_trimesh(face_mesh(fit, face_only=True)), RECT, (128, 128)).mask
+    seen = render_pixel_geometry(Scene.from_trimesh(face_mesh(fit, face_only=True).to_trimesh()), RECT, (128, 128)).mask
     assert np.sum(face & seen) / np.sum(face | seen) > 0.97
 
 

@@ -66,7 +66,7 @@ MASKS = {
 
 def _mesh_for(name):
     mask = MASKS[name]()
-    return reconstruct_mesh(mask, *_paraboloid_maps(mask), RECT)
+    return reconstruct_mesh(mask, *_paraboloid_maps(mask), RECT).to_trimesh()
 
 
 @pytest.mark.parametrize("name", MASKS)
@@ -86,7 +86,7 @@ def test_mesh_volume_is_positive(name):
 
 def test_body_silhouette_mesh_is_watertight(body_maps):
     mesh = reconstruct_mesh(body_maps.mask, body_maps.front_depth, body_maps.back_depth,
-                            body_maps.rect)
+                            body_maps.rect).to_trimesh()
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
 
 
@@ -96,13 +96,13 @@ def test_volume_matches_prism():
     mask = np.zeros((n + 2, n + 2), bool)
     mask[1:-1, 1:-1] = True
     mesh = reconstruct_mesh(mask, np.full(mask.shape, 0.5), np.full(mask.shape, -0.25),
-                            (0.0, n + 2.0, 0.0, n + 2.0))
+                            (0.0, n + 2.0, 0.0, n + 2.0)).to_trimesh()
     assert mesh.volume == pytest.approx((n - 1) ** 2 * 0.75, rel=1e-12)
 
 
 def test_sphere_volume_close_to_analytic():
     maps = render_maps(sphere(), RECT, 128, 128)
-    mesh = reconstruct_mesh(maps.mask, maps.front_depth, maps.back_depth, RECT)
+    mesh = reconstruct_mesh(maps.mask, maps.front_depth, maps.back_depth, RECT).to_trimesh()
     # The pixel-centre surface stops half a pixel inside the silhouette: -3% at 128 px
     assert mesh.volume == pytest.approx(4 / 3 * np.pi, rel=0.03)
 
@@ -130,7 +130,7 @@ def _interior(mask):
 def test_front_surface_is_pixel_aligned(name):
     mask = MASKS[name]()
     front, back = _paraboloid_maps(mask)
-    mesh = reconstruct_mesh(mask, front, back, RECT)
+    mesh = reconstruct_mesh(mask, front, back, RECT).to_trimesh()
     core = _interior(mask)
     # float32 ray tracing over a scene of size ~2: 1e-5 is ~100 ulps
     np.testing.assert_allclose(_front_hits(mesh, core, RECT), front[core], atol=1e-5)
@@ -138,14 +138,14 @@ def test_front_surface_is_pixel_aligned(name):
 
 def test_body_front_surface_is_pixel_aligned(body_maps):
     m = body_maps
-    mesh = reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect)
+    mesh = reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect).to_trimesh()
     core = _interior(m.mask)
     np.testing.assert_allclose(_front_hits(mesh, core, m.rect), m.front_depth[core], atol=1e-4)
 
 
 def test_arm_over_torso_front_surface_is_pixel_aligned(arm_maps):
     m = arm_maps
-    mesh = reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect)
+    mesh = reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect).to_trimesh()
     core = _interior(m.mask)
     np.testing.assert_allclose(_front_hits(mesh, core, m.rect), m.front_depth[core], atol=1e-5)
 
@@ -159,7 +159,7 @@ def test_one_pixel_limbs_are_not_covered():
 def test_back_depth_in_front_is_clamped():
     mask = _disc()
     front, _ = _paraboloid_maps(mask)
-    mesh = reconstruct_mesh(mask, front, front + 1.0, RECT, min_thickness=0.01)
+    mesh = reconstruct_mesh(mask, front, front + 1.0, RECT, min_thickness=0.01).to_trimesh()
     assert mesh.is_watertight and mesh.volume > 0
 
 
@@ -175,7 +175,7 @@ def test_nan_depth_off_mask_is_ignored():
     mask = _disc()
     front, back = _paraboloid_maps(mask)
     front[0, 0] = np.nan
-    assert reconstruct_mesh(mask, front, back, RECT).is_watertight
+    assert reconstruct_mesh(mask, front, back, RECT).to_trimesh().is_watertight
 
 
 def test_mismatched_shapes_raise():

@@ -123,7 +123,7 @@ def test_smoothing_keeps_reconstruction_watertight():
     mask = np.zeros((32, 32), bool)
     mask[4:28, 6:26] = True
     mesh = reconstruct_mesh(mask, np.full(mask.shape, 0.5), np.full(mask.shape, -0.5),
-                            (0.0, 1.0, 0.0, 1.0))
+                            (0.0, 1.0, 0.0, 1.0)).to_trimesh()
     smoothed = smooth_mesh(mesh)
     assert smoothed.is_watertight and smoothed.volume > 0.8 * mesh.volume
 

@@ -26,7 +26,7 @@ def _chamfer(a, b, samples=20_000):
 
 
 def _body_mesh(maps, smooth):
-    mesh = reconstruct_mesh(maps.mask, maps.front_depth, maps.back_depth, maps.rect)
+    mesh = reconstruct_mesh(maps.mask, maps.front_depth, maps.back_depth, maps.rect).to_trimesh()
     return smooth_mesh(mesh) if smooth else mesh
 
 
@@ -72,5 +72,5 @@ def test_plain_least_squares_smears_the_arm(arm_maps):
 
 def test_arm_over_torso_mesh_is_watertight_after_smoothing(arm_maps):
     m = arm_maps
-    mesh = smooth_mesh(reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect))
+    mesh = smooth_mesh(reconstruct_mesh(m.mask, m.front_depth, m.back_depth, m.rect).to_trimesh())
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
