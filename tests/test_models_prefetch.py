@@ -65,3 +65,26 @@ def test_stopping_drops_the_sessions_not_yet_started(monkeypatch):
     assert models.get("ao") == "ao"
     assert models.get("delight") == "delight"  # built on demand, on this thread
     assert built == ["ao", "delight"]
+
+
+def test_the_light_solves_transport_table_is_filled_ahead_only_when_the_plan_solves():
+    from relightcli.pipeline import prepared_models
+    from relightcli.render.inverse import transport_table
+
+    transport_table.cache_clear()
+    models = prepared_models(RelightOptions(outputs=("normal",)))
+    models.get("geometry_prior")  # the last of its sessions: the queue is done
+    assert transport_table.cache_info().currsize == 0
+    models = prepared_models(RelightOptions())
+    models._executor.shutdown(wait=True)  # sessions, then the table
+    assert transport_table.cache_info().currsize == 1
+
+
+def test_a_table_that_fails_ahead_does_not_stop_the_sessions():
+    def broken():
+        raise MemoryError("no room for the table")
+
+    models = Models(threads=1)
+    models.prefetch(["ao"], tables=[broken])
+    assert type(models.get("ao")).__name__ == "AONet"
+    models.stop_prefetch()

@@ -112,9 +112,12 @@ class Models:
         self.threads, self._sessions, self._lights = threads, {}, {}
         self._pending, self._executor = {}, None  # family -> Future of its session
 
-    def prefetch(self, families) -> None:
+    def prefetch(self, families, tables=()) -> None:
         """Start creating these families' sessions, in order, on one background thread; `get`
-        waits for a pending one, and raises what its creation raised."""
+        waits for a pending one, and raises what its creation raised. `tables`: functions of
+        no argument called after them on that thread, to fill their caches (numpy releases
+        the GIL in their products and sums); what they raise is dropped (the stage that needs
+        the table computes it again and raises there)."""
         from concurrent.futures import ThreadPoolExecutor
 
         from relightcli.nets.session import import_onnxruntime
@@ -122,11 +125,13 @@ class Models:
         _session_classes()
         import_onnxruntime()
         families = [f for f in dict.fromkeys(families) if f not in self._sessions and f not in self._pending]
-        if not families:
+        if not families and not tables:
             return
         self._executor = self._executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix="relight-models")
         for family in families:
             self._pending[family] = self._executor.submit(self._create, family)
+        for table in tables:
+            self._executor.submit(table)
 
     def stop_prefetch(self) -> None:
         """Drop the sessions not yet started (a run that ends early does not wait for them)."""
