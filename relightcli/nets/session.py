@@ -142,6 +142,11 @@ class ModelSession:
         # No memory arena: it keeps every activation buffer of the largest run (measured: 1.19
         # GB peak for the four nets at a 256 crop with it, 0.52 GB without, same speed)
         options.enable_cpu_mem_arena = False
+        # No spinning: ONNX Runtime's pool threads otherwise busy-wait after each run, taking
+        # the second core from the numpy and ray-tracing work between the nets and from the
+        # sessions being built ahead (Models.prefetch): one photo at 512, whole process, 5.66
+        # -> 5.33 s on 2 cores (bench/whole_process.py --against), the nets' own runs as fast
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             return ort.InferenceSession(str(self.path), sess_options=options,
                                         providers=providers or select_providers())
