@@ -50,6 +50,12 @@ JUMP, COLOUR, BRIGHT = 0.35, 0.15, np.log(1.65)
 GOALS = {"detail": (">=", 0.85), "jumps": ("<=", 0.05), "colour": ("<=", 0.06), "bright": ("<=", 0.003),
          "spread": (">=", 0.05)}
 EPS = 1e-4
+# A photo pixel darker than one 8-bit sRGB step above black (linear 1 / 255 / 12.92): its ratio
+# relit / photo is 0 / 0, and EPS made it 1 whatever the relight's level (the nostrils of a
+# portrait relit to a fifth of its level "brightened" by 5x while they stayed black). Such a
+# pixel is neutral (its local median) when the relit is as black (at the relight's level); a
+# relit above that keeps its ratio, and counts.
+BLACK = 1.0 / 255.0 / 12.92
 
 
 def face_region(photo: np.ndarray, box, mask: np.ndarray, models) -> np.ndarray | None:
@@ -91,7 +97,13 @@ def face_scores(photo: np.ndarray, relit: np.ndarray, region: np.ndarray) -> dic
     a, b, inside = photo[window].astype(np.float64), relit[window].astype(np.float64), region[window]
     side = max(np.ptp(rows), np.ptp(cols)) + 1
     size = max(5, int(side / 6) | 1)
-    ratio = np.log(np.maximum(b, 0) + EPS) - np.log(np.maximum(a, 0) + EPS)  # per channel
+    # EPS at each image's own level over the face: a relight to a fifth of the photo's level
+    # otherwise met EPS at a fifth of the pixel's value, and its darkest pixels (nostril rims,
+    # pupils) looked up to 2x brighter than their neighbours
+    gain = np.median(b[inside] @ LUMINANCE) / max(np.median(a[inside] @ LUMINANCE), EPS)
+    ratio = np.log(np.maximum(b, 0) + EPS * gain) - np.log(np.maximum(a, 0) + EPS)  # per channel
+    both_black = (a @ LUMINANCE < BLACK) & (b @ LUMINANCE < BLACK * gain)
+    inside = inside & ~both_black  # undefined ratios stand in as the face's median (local_median)
     r = ratio.mean(axis=-1)
     jump = np.abs(r - local_median(r, inside, size))
     colour = np.zeros_like(r)
@@ -100,7 +112,7 @@ def face_scores(photo: np.ndarray, relit: np.ndarray, region: np.ndarray) -> dic
         colour = np.maximum(colour, np.abs(c - local_median(c, inside, size)))
     bright = r - local_median(r, inside, size)
     hp_a, hp_b = high_pass(a.astype(np.float32))[inside], high_pass(b.astype(np.float32))[inside]
-    return {"pixels": int(inside.sum()), "side_px": int(side),
+    return {"pixels": int(inside.sum()), "side_px": int(side), "black_px": int((both_black & region[window]).sum()),
             "detail": round(float(np.corrcoef(hp_a, hp_b)[0, 1]), 3),
             "jumps": round(float(np.mean(jump[inside] > JUMP)), 4),
             "colour": round(float(np.mean(colour[inside] > COLOUR)), 4),
