@@ -119,22 +119,12 @@ def albedo_metrics(frame, scene) -> dict:
             "relit_oracle_level": psnr(relit * level, scene.relit)}
 
 
-def own_level_anchor(anchor):
-    """compose.anchor_albedo with the ratio albedo's own level: the net's albedo it levels to
-    scaled to the ratio's level first, so its gain is 1 (the oracle rows' "own level")."""
-    def anchored(ratio, net_albedo, mask, *args, **kwargs):
-        inside = mask > 0.5
-        have, want = float(ratio[inside].mean()), float(net_albedo[inside].mean())
-        return anchor(ratio, net_albedo * (have / want if want > 0 else 1.0), mask, *args, **kwargs)
-    return anchored
-
-
 @contextlib.contextmanager
 def substituted(source: str, light: np.ndarray):
     """The pipeline with the truth in place of one quantity for the oracle sources: the true
     input light (in the photo's units) for the solved one, and with "-own-level" the albedo
     left at that light's level instead of the net's."""
-    saved = delight.solve_input_light, compose.anchor_albedo
+    saved = delight.solve_input_light, compose.albedo_gain
     try:
         if source.startswith("true-light"):
             def true_light(frame, net_albedo, options, models):
@@ -143,10 +133,12 @@ def substituted(source: str, light: np.ndarray):
                 return light.astype(np.float32), light.astype(np.float32)
             delight.solve_input_light = true_light
         if source.endswith("own-level"):
-            compose.anchor_albedo = own_level_anchor(saved[1])
+            # the ratio albedo's gain to the net's level is 1: it keeps the light's own level
+            # (the stage computes the gain and hands it to compose.anchor_albedo)
+            compose.albedo_gain = lambda *args, **kwargs: 1.0
         yield
     finally:
-        delight.solve_input_light, compose.anchor_albedo = saved
+        delight.solve_input_light, compose.albedo_gain = saved
 
 
 def measure(folder: Path, truth: dict, source: str, use_gt_mask: bool, models) -> dict:

@@ -14,6 +14,7 @@ Rows (every row after `ours` keeps the true mask, and is scored against `true ma
                    with that median when the maps are cropped)
   true light       the factory's input light (in the photo's units) for the solved one, the
                    albedo at that light's own level (bench/light_solve.py's oracle)
+  true light, net level  the same light, the albedo levelled to the net's as the product does
   true albedo      relit = the true albedo x our shading (no rerun)
   true shading     relit = our albedo x the true shading (no rerun)
 There is no row for the fitted body: the eval scenes keep no body parameters.
@@ -44,7 +45,8 @@ from relightcli.evaluate import find_scenes, load_scene, scene_metrics  # noqa: 
 from relightcli.pipeline import RelightOptions, predict_scene  # noqa: E402
 from relightcli.stages.frame import Models, unit  # noqa: E402
 
-ROWS = ("ours", "true mask", "true normals", "true geometry", "true light", "true albedo", "true shading")
+ROWS = ("ours", "true mask", "true normals", "true geometry", "true light", "true light, net level",
+        "true albedo", "true shading")
 KEYS = ("relit", "albedo", "shading", "normal_deg")
 
 
@@ -92,7 +94,8 @@ def measure(folder: Path, truth: dict, rows: tuple, models: Models) -> dict:
                 stages.STAGES["geometry"] = with_true_normals(geometry_stage, scene.normal)
             if row == "true geometry":
                 stages.STAGES["geometry"] = with_true_geometry(geometry_stage, truth)
-            with substituted("true-light-own-level" if row == "true light" else "", truth["light_a"] * gains):
+            source = {"true light": "true-light-own-level", "true light, net level": "true-light"}.get(row, "")
+            with substituted(source, truth["light_a"] * gains):
                 pred = predict_scene(scene, options, use_gt_mask=row != "ours", models=models)
         except Exception as error:  # noqa: BLE001 - a failed scene is reported, the others count
             out[row] = {"error": str(error)}
