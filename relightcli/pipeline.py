@@ -10,10 +10,10 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from relightcli.batch import Item, ItemReport
 from relightcli.errors import InputError
@@ -191,15 +191,13 @@ def prepared_models(options: RelightOptions):
     """`load_models`, with the sessions the plan uses being created on a background thread,
     and after them the light solve's transport table (0.17 s, once per process)."""
     models = load_models(options.threads)
-    solves = options.albedo == "solve" and "delight" in plan_stages(options, has_alpha=True).run
-    models.prefetch(planned_models(options), tables=[_light_transport_table] if solves else [])
+    models.prefetch(planned_models(options))
+    if options.albedo == "solve" and "delight" in plan_stages(options, has_alpha=True).run:
+        # imported here, while the sessions build: the prefetch thread may import nothing
+        from relightcli.render.inverse import LIGHT_HEIGHT, transport_table
+
+        models.prefetch((), tables=[partial(transport_table, LIGHT_HEIGHT)])
     return models
-
-
-def _light_transport_table() -> None:
-    from relightcli.render.inverse import LIGHT_HEIGHT, transport_table
-
-    transport_table(LIGHT_HEIGHT)
 
 
 def load_models(threads: int):
@@ -289,7 +287,7 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     the lighting run once, the others once per environment, each followed by
     on_lighting(index, frame). Stage times add up over the lightings."""
     from relightcli.stages import LIGHTING_STAGES, STAGES
-    from relightcli.stages.frame import Frame, Models
+    from relightcli.stages.frame import Frame, Models, one_blas_thread
 
     models = models or Models(options.threads)
     plan = plan_stages(options, has_alpha=mask is not None)
@@ -300,7 +298,7 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     # it before they load, but a process that loaded numpy first (a Python caller, pytest) kept
     # OpenBLAS's default threads, and with two people the body fits' products split across
     # them rounded differently: other bytes than the CLI's for the same photo
-    blas = threadpool_limits(limits=1, user_api="blas")
+    blas = one_blas_thread(models)
     try:
         for stage in (s for s in plan.run if s not in LIGHTING_STAGES):
             with _timed(report, stage):

@@ -88,3 +88,66 @@ def test_a_table_that_fails_ahead_does_not_stop_the_sessions():
     models.prefetch(["ao"], tables=[broken])
     assert type(models.get("ao")).__name__ == "AONet"
     models.stop_prefetch()
+
+
+def test_the_blas_limits_library_scan_waits_for_the_session_in_hand(monkeypatch):
+    """threadpoolctl's scan holds the dynamic loader's lock and calls back into Python: beside a
+    thread that loads a library while holding the GIL, both would wait for ever."""
+    from relightcli.stages.frame import one_blas_thread
+
+    started, release = threading.Event(), threading.Event()
+
+    def slow(self, family):
+        started.set()
+        release.wait(10)
+        return family
+
+    monkeypatch.setattr(Models, "_create", slow)
+    models = Models(threads=1)
+    models.prefetch(["ao"])
+    assert started.wait(10)
+    scanned = threading.Event()
+    scan = threading.Thread(target=lambda: (one_blas_thread(models).restore_original_limits(), scanned.set()))
+    scan.start()
+    assert not scanned.wait(0.3)  # waits for the build in hand
+    release.set()
+    assert scanned.wait(10)
+    scan.join()
+
+
+SPY = """
+import json, sys, threading
+imported = []
+class Spy:
+    def find_spec(self, name, path=None, target=None):
+        if threading.current_thread().name.startswith("relight-models"):
+            imported.append(name)
+        return None
+sys.meta_path.insert(0, Spy())
+from relightcli.cli import main
+try:
+    main(sys.argv[1:])
+except SystemExit:
+    pass
+print("IMPORTED " + json.dumps(imported))
+"""
+
+
+def test_the_prefetch_thread_imports_nothing(tmp_path):
+    """An import on that thread can deadlock against threadpoolctl's scan (Models.prefetch): a
+    whole run, without a mask (the people stage) and with, records every module first imported
+    on it."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for extra in ([], ["--mask", str(root / "examples" / "skier_mask.png")]):
+        out = subprocess.run([sys.executable, "-c", SPY, str(root / "examples" / "skier.jpg"), "--hdr",
+                              str(root / "examples" / "noon_grass.hdr"), "-o", str(tmp_path / "skier.png"),
+                              "--resolution", "128", "--overwrite", *extra],
+                             capture_output=True, text=True, timeout=300, cwd=tmp_path)
+        line = [x for x in out.stdout.splitlines() if x.startswith("IMPORTED ")]
+        assert line, out.stderr[-2000:]
+        assert json.loads(line[0][len("IMPORTED "):]) == []

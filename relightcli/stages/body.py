@@ -27,7 +27,7 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     for person in frame.people:
         start = time.perf_counter()
         fit = _fit_on_one_opencv_thread(model, person_keypoints_in_crop(person, frame.view.scale, frame.box),
-                                        person.pose.landmarks[:, 3], person.pose.world, silhouette)
+                                        person.pose.landmarks[:, 3], person.pose.world, silhouette, models)
         fits.append(fit)
         residual = float(fit.residual_px)
         note = {"seconds": round(time.perf_counter() - start, 4),
@@ -40,7 +40,7 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     frame.notes["body"] = {"people": people}
 
 
-def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette):
+def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette, models=None):
     """fit_body with OpenCV and BLAS on one thread and without Intel IPP: the silhouette term's
     OpenCV calls round differently with another thread count (1e-8 on the vertices), and with
     IPP its precise distance transform differed from one process to the next on the same input
@@ -48,16 +48,16 @@ def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette):
     shading pixels); numpy's BLAS keeps its default threads in a process that loaded numpy
     before relightcli, and two people's fits rounded differently then (one code value in a few
     head pixels). An item's outputs must not depend on any of them (tests/test_determinism.py),
-    whichever entry point runs the stage (the pipeline, the data factory's coarse maps)."""
-    from threadpoolctl import threadpool_limits
-
+    whichever entry point runs the stage (the pipeline, the data factory's coarse maps).
+    `models`: whose prefetch thread the BLAS limit's library scan waits for (one_blas_thread)."""
     from relightcli.geometry.body_fit import fit_body
+    from relightcli.stages.frame import one_blas_thread
 
     threads, ipp = cv2.getNumThreads(), cv2.ipp.useIPP()
     cv2.setNumThreads(1)
     cv2.ipp.setUseIPP(False)
     try:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread(models):
             return fit_body(model, keypoints, visibility, world, silhouette)
     finally:
         cv2.setNumThreads(threads)

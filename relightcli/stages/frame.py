@@ -109,15 +109,22 @@ class Models:
     first stages."""
 
     def __init__(self, threads: int):
+        import threading
+
         self.threads, self._sessions, self._lights = threads, {}, {}
         self._pending, self._executor = {}, None  # family -> Future of its session
+        self._building = threading.Lock()  # held by the prefetch thread while it builds
 
     def prefetch(self, families, tables=()) -> None:
         """Start creating these families' sessions, in order, on one background thread; `get`
         waits for a pending one, and raises what its creation raised. `tables`: functions of
         no argument called after them on that thread, to fill their caches (numpy releases
         the GIL in their products and sums); what they raise is dropped (the stage that needs
-        the table computes it again and raises there)."""
+        the table computes it again and raises there). Nothing may be imported on that thread
+        (the session classes and ONNX Runtime are imported here first; a table's module must
+        be too): an extension module's import loads a library while holding the GIL, and
+        threadpoolctl's scan of the loaded libraries (`paused`) holds the loader's lock while
+        it waits for the GIL: the two threads would wait on each other for ever."""
         from concurrent.futures import ThreadPoolExecutor
 
         from relightcli.nets.session import import_onnxruntime
@@ -129,9 +136,19 @@ class Models:
             return
         self._executor = self._executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix="relight-models")
         for family in families:
-            self._pending[family] = self._executor.submit(self._create, family)
+            self._pending[family] = self._executor.submit(self._while_building, self._create, family)
         for table in tables:
-            self._executor.submit(table)
+            self._executor.submit(self._while_building, table)
+
+    def paused(self):
+        """A context in which the prefetch thread builds nothing (it finishes the session or
+        table in hand first): for what must not run beside it, such as threadpoolctl's scan of
+        the loaded libraries (see `prefetch`)."""
+        return self._building
+
+    def _while_building(self, task, *args):
+        with self._building:
+            return task(*args)
 
     def stop_prefetch(self) -> None:
         """Drop the sessions not yet started (a run that ends early does not wait for them)."""
@@ -172,6 +189,18 @@ class Models:
 
     def _create(self, family: str):
         return _session_classes()[family](threads=self.threads)
+
+
+def one_blas_thread(models=None):
+    """threadpoolctl's limit of numpy's and scipy's BLAS to one thread (a context manager, or
+    `restore_original_limits()`), its scan of the loaded libraries made while `models`'s
+    prefetch thread builds nothing (Models.prefetch says why)."""
+    import contextlib
+
+    from threadpoolctl import threadpool_limits
+
+    with getattr(models, "paused", contextlib.nullcontext)():
+        return threadpool_limits(limits=1, user_api="blas")
 
 
 def _session_classes() -> dict:
