@@ -116,11 +116,12 @@ class Relighter:
 
     def __init__(self, *, threads: int | None = None, **options):
         from relightcli.cli import default_threads
-        from relightcli.pipeline import load_models
+        from relightcli.pipeline import prepared_models
 
         threads = _checked_threads(threads, default_threads())
         self.options = _options(RelightOptions(threads=threads), options)
-        self.models = load_models(threads)
+        # the sessions its options' plan uses start building on a background thread now
+        self.models = prepared_models(self.options)
 
     def relight(self, image, hdr, *, mask=None, **options) -> Result:
         """Relight one photo under one environment map.
