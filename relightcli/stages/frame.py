@@ -8,6 +8,7 @@ at the crop's size until an output needs them full frame: a 24 MP frame is 288 M
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import cv2
@@ -109,8 +110,6 @@ class Models:
     first stages."""
 
     def __init__(self, threads: int):
-        import threading
-
         self.threads, self._sessions, self._lights = threads, {}, {}
         self._pending, self._executor = {}, None  # family -> Future of its session
         self._building = threading.Lock()  # held by the prefetch thread while it builds
