@@ -190,9 +190,9 @@ class RelightWorker:
 def prepared_models(options: RelightOptions):
     """`load_models`, with the sessions the plan uses being created on a background thread,
     and after them the light solve's transport table (0.17 s, once per process)."""
-    models = load_models(options.threads)
-    models.prefetch(planned_models(options))
-    if options.albedo == "solve" and "delight" in plan_stages(options, has_alpha=True).run:
+    models, families = load_models(options.threads), planned_models(options)
+    models.prefetch(families)
+    if options.albedo == "solve" and "delight" in families:
         # imported here, while the sessions build: the prefetch thread may import nothing
         from relightcli.render.inverse import LIGHT_HEIGHT, transport_table
 
