@@ -10,7 +10,7 @@ limit, or short of capacity or of data?
 geometry net's normals: `python -m export.factory.coarse DATA --normals-only` first), both
 cores, checkpoints every 250 steps: rerun the same command to resume where it stopped.
 `score` reads each run's validation metrics (the factory's val split, the net alone) and its
-training CPU-hours; with --eval it also exports each run's net into a copy of models/ and runs
+training CPU-hours; with --eval it also exports each finished run's net into a copy of models/ and runs
 the product's own `relight eval` on those scenes with it (albedo and relit through the whole
 pipeline, which divides the photo by the light solved against this net's albedo). Choose by
 validation only.
@@ -80,7 +80,8 @@ def score(args) -> None:
         log = last_record(run / "log.jsonl")
         row = {"run": run.name, "size": config["size"], "train_samples": config["train_samples"],
                "step": log.get("step"), "cpu_hours": round(log.get("elapsed_s", 0) * THREADS / 3600, 2)}
-        if args.eval:  # (exporting validates the net again: on the val split as it is now)
+        finished = row["step"] is not None and row["step"] >= config["steps"]
+        if args.eval and finished:  # (exporting validates the net again: on the val split as it is now)
             row["pipeline"] = pipeline_scores(run, args.data, args.eval, config["size"], config["train_samples"])
         row["val"] = last_record(run / "val.jsonl")
         rows.append(row)
