@@ -190,7 +190,7 @@ class RelightWorker:
 def prepared_models(options: RelightOptions):
     """`load_models`, with the sessions the plan uses being created on a background thread,
     and after them the light solve's transport table (0.17 s, once per process)."""
-    models, families = load_models(options.threads), planned_models(options)
+    models, families = load_models(options.threads, options.resolution), planned_models(options)
     models.prefetch(families)
     if options.albedo == "solve" and "delight" in families:
         # imported here, while the sessions build: the prefetch thread may import nothing
@@ -200,9 +200,10 @@ def prepared_models(options: RelightOptions):
     return models
 
 
-def load_models(threads: int):
+def load_models(threads: int, resolution: int | None = None):
     """OpenCV's and OpenImageIO's threads set to `threads`, and the network sessions (loaded on
-    first use) that every item of a batch shares."""
+    first use, each built for the side it runs at in a `resolution` crop) that every item of a
+    batch shares."""
     import cv2
 
     from relightcli.io.images import set_io_threads
@@ -210,7 +211,7 @@ def load_models(threads: int):
 
     cv2.setNumThreads(threads)
     set_io_threads(threads)
-    return Models(threads)
+    return Models(threads, resolution)
 
 
 def relight_item(item: Item, env, options: RelightOptions, models=None) -> ItemReport:
@@ -289,7 +290,7 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     from relightcli.stages import LIGHTING_STAGES, STAGES
     from relightcli.stages.frame import Frame, Models, one_blas_thread
 
-    models = models or Models(options.threads)
+    models = models or Models(options.threads, options.resolution)
     plan = plan_stages(options, has_alpha=mask is not None)
     frame = Frame(image=image, mask=mask, env=env)
     if mask is not None:

@@ -37,7 +37,7 @@ def test_a_prefetched_session_is_the_one_get_returns_and_is_kept():
 
 
 def test_a_session_that_fails_to_build_raises_where_it_is_asked_for(monkeypatch):
-    def broken(self, family):
+    def broken(self, family, run_size):
         raise MissingDependencyError(f"model {family!r} is broken", fix="reinstall")
 
     monkeypatch.setattr(Models, "_create", broken)
@@ -50,7 +50,7 @@ def test_a_session_that_fails_to_build_raises_where_it_is_asked_for(monkeypatch)
 def test_stopping_drops_the_sessions_not_yet_started(monkeypatch):
     started, release, built = threading.Event(), threading.Event(), []
 
-    def slow(self, family):
+    def slow(self, family, run_size):
         started.set()
         release.wait(10)
         built.append(family)
@@ -97,7 +97,7 @@ def test_the_blas_limits_library_scan_waits_for_the_session_in_hand(monkeypatch)
 
     started, release = threading.Event(), threading.Event()
 
-    def slow(self, family):
+    def slow(self, family, run_size):
         started.set()
         release.wait(10)
         return family

@@ -109,8 +109,10 @@ class Models:
     GIL (0.4-0.5 s for the default plan's nine on 2 cores), so it overlaps the imports and the
     first stages."""
 
-    def __init__(self, threads: int):
-        self.threads, self._sessions, self._lights = threads, {}, {}
+    def __init__(self, threads: int, resolution: int | None = None):
+        """resolution: the working crop's side the items will run at; each net's session is
+        then built for the side it runs at (run_size); None: for any side."""
+        self.threads, self.resolution, self._sessions, self._lights = threads, resolution, {}, {}
         self._pending, self._executor = {}, None  # family -> Future of its session
         self._building = threading.Lock()  # held by the prefetch thread while it builds
 
@@ -135,7 +137,8 @@ class Models:
             return
         self._executor = self._executor or ThreadPoolExecutor(max_workers=1, thread_name_prefix="relight-models")
         for family in families:
-            self._pending[family] = self._executor.submit(self._while_building, self._create, family)
+            self._pending[family] = self._executor.submit(self._while_building, self._create, family,
+                                                          self.run_size(family))
         for table in tables:
             self._executor.submit(self._while_building, table)
 
@@ -183,11 +186,28 @@ class Models:
     def get(self, family: str):
         if family not in self._sessions:
             pending = self._pending.pop(family, None)
-            self._sessions[family] = pending.result() if pending is not None else self._create(family)
+            self._sessions[family] = pending.result() if pending is not None \
+                else self._create(family, self.run_size(family))
         return self._sessions[family]
 
-    def _create(self, family: str):
-        return _session_classes()[family](threads=self.threads)
+    def _create(self, family: str, run_size: int | None):
+        return _session_classes()[family](threads=self.threads, run_size=run_size)
+
+    def run_size(self, family: str) -> int | None:
+        """The side (padded to the model's multiple) a family's net runs at in a crop of
+        `resolution`: the working side for the body refinement, the face crop's for the face
+        refinement, net_side's for the nets that learned on a side; None when unknown (a
+        session for any side)."""
+        from relightcli.geometry.face_detect import FACE_CROP_SIZE
+        from relightcli.nets.manifest import model_entry
+
+        if self.resolution is None:
+            return None
+        entry = model_entry(_session_classes()[family].model_name)
+        trained = entry.training_data.get("resolution")
+        side = {"body_refine": self.resolution, "face_refine": FACE_CROP_SIZE}.get(
+            family, min(self.resolution, int(trained)) if trained else None)
+        return None if side is None else -(-side // entry.multiple) * entry.multiple
 
 
 def one_blas_thread(models=None):

@@ -162,3 +162,32 @@ def test_manifest_entry_without_sha(tmp_path):
         "file": "ao.onnx", "inputs": [], "outputs": [], "multiple": 16}}}))
     with pytest.raises(MissingDependencyError, match="lacks sha256"):
         load_manifest(tmp_path)
+
+
+def test_a_session_built_for_one_side_runs_it_and_any_other_side_alike(ao_model_dir):
+    """run_size: the session is built for (1, C, S, S); other shapes run on a second session,
+    with the same values."""
+    fixed, free = AONet(models_dir=ao_model_dir, threads=1, run_size=32), AONet(models_dir=ao_model_dir, threads=1)
+    assert [d for d in fixed.session.get_inputs()[0].shape] == [1, 3, 32, 32]
+    assert fixed._dynamic is None
+    rng = np.random.default_rng(0)
+    same = rng.random((1, 3, 32, 32), dtype=np.float32)
+    np.testing.assert_allclose(fixed.run({"image": same})["ao"], free.run({"image": same})["ao"], rtol=1e-6)
+    assert fixed._dynamic is None  # the run size's shape took the static session
+    for shape in ((1, 3, 16, 32), (2, 3, 32, 32)):
+        other = rng.random(shape, dtype=np.float32)
+        np.testing.assert_allclose(fixed.run({"image": other})["ao"], free.run({"image": other})["ao"], rtol=1e-6)
+    assert fixed._dynamic is not None
+
+
+def test_each_family_is_built_for_the_side_it_runs_at_in_the_crop():
+    from relightcli.stages.frame import Models
+
+    at_512, at_200 = Models(1, 512), Models(1, 200)
+    assert at_512.run_size("body_refine") == 512  # the refinement runs at the working side
+    assert at_512.run_size("delight") == at_512.run_size("geometry_prior") == 256  # net_side
+    assert at_512.run_size("face_refine") == 128  # the face crop's side
+    assert at_512.run_size("pose_landmarks") is None  # a fixed-shape graph
+    multiple = load_manifest()["delight"].multiple  # a side the net cannot take is padded up
+    assert at_200.run_size("delight") % multiple == 0 and 200 <= at_200.run_size("delight") < 200 + multiple
+    assert Models(1).run_size("body_refine") is None  # no resolution given: any side
