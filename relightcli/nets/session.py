@@ -22,11 +22,12 @@ CPU_PROVIDER = "CPUExecutionProvider"
 ORT_DTYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "int64": "tensor(int64)"}
 
 
-# A session built for the one input shape it will run on (ONNX Runtime's free dimension
-# overrides: the batch 1, the side the run's size) plans its shape arithmetic and buffers once:
+# A session built for the one input shape it runs on (ONNX Runtime's free dimension overrides:
+# N, H, W fixed) plans its shape arithmetic and buffers once:
 # the body refinement net at 512 ran 0.44 -> 0.35 s on one thread and 0.28 -> 0.18 s on two,
 # the other nets 3-10% faster (back to back, 5 runs each, `ModelSession` alone); the outputs
-# differ from the dynamic session's by float rounding (2e-7 of the refined shading)
+# differ from a free session's by float rounding (2e-7 of the refined shading), so every shape
+# runs on its own fixed session: the same bytes whichever shapes a process was prepared for
 STATIC_SHAPES = True
 FREE_DIMS = ("N", "H", "W")
 
@@ -79,9 +80,9 @@ class ModelSession:
     ):
         """threads: intra-op threads (None: ONNX Runtime's default, all cores).
         verify_sha256: hash the file against the manifest (about 1 s per GB).
-        run_size: the side of the square inputs (padded) it will mostly run on, one at a time:
-        the session is built for that shape (STATIC_SHAPES); other shapes run on a second
-        session, built the first time one comes."""
+        run_size: the side of the square inputs (padded) it will run on, one at a time: the
+        session for that shape is built now, any other shape's the first time one comes
+        (STATIC_SHAPES: each input shape runs on a session built for it)."""
         self.name = name or self.model_name
         if not self.name:
             raise UsageError("no model name given", fix="pass name= or use a model family class")
@@ -92,11 +93,18 @@ class ModelSession:
         # The side of the square crops it learned on (manifest training_data), None if unknown
         trained = self.entry.training_data.get("resolution")
         self.trained_resolution: int | None = int(trained) if trained else None
-        self.threads, self._providers, self._dynamic = threads, providers, None
+        self.threads, self._providers, self._shaped = threads, providers, {}
         self._check_family_contract()
         self._check_file(verify_sha256)
-        self.run_size = run_size if run_size and self._has_free_dims() else None
-        self.session = self._create_session(threads, providers, self.run_size)
+        # the first input with free dimensions: its (dim, size) pairs key the sessions
+        self._keyed = next((t for t in self.entry.inputs if set(t.shape) & set(FREE_DIMS)), None) \
+            if STATIC_SHAPES else None
+        planned = {"N": 1, "H": run_size, "W": run_size}
+        shape = tuple((d, planned[d]) for d in FREE_DIMS if d in self._keyed.shape) \
+            if run_size and self._keyed is not None else None
+        self.session = self._create_session(threads, providers, shape)
+        if shape is not None:
+            self._shaped[shape] = self.session
         self._check_graph_contract()
 
     @property
@@ -118,23 +126,15 @@ class ModelSession:
         names = [t.name for t in self.entry.outputs]
         return dict(zip(names, self._session_for(arrays).run(names, arrays)))
 
-    def _has_free_dims(self) -> bool:
-        return any(dim in FREE_DIMS for t in self.entry.inputs for dim in t.shape)
-
     def _session_for(self, arrays: dict):
-        """The static session when every free dimension is the one it was built for."""
-        if self.run_size is None or all(self._fits(self._promised_input(name), a) for name, a in arrays.items()):
+        """The session built for these inputs' (N, H, W), built now if none is."""
+        if self._keyed is None:
             return self.session
-        if self._dynamic is None:
-            self._dynamic = self._create_session(self.threads, self._providers, None)
-        return self._dynamic
-
-    def _promised_input(self, name: str) -> TensorContract:
-        return next(t for t in self.entry.inputs if t.name == name)
-
-    def _fits(self, promised: TensorContract, array: np.ndarray) -> bool:
-        wanted = {"N": 1, "H": self.run_size, "W": self.run_size}
-        return all(have == wanted[dim] for dim, have in zip(promised.shape, array.shape) if dim in FREE_DIMS)
+        promised, array = self._keyed, arrays[self._keyed.name]
+        shape = tuple((d, int(array.shape[promised.shape.index(d)])) for d in FREE_DIMS if d in promised.shape)
+        if shape not in self._shaped:
+            self._shaped[shape] = self._create_session(self.threads, self._providers, shape)
+        return self._shaped[shape]
 
     # -- loading and checks -------------------------------------------------------------------
 
@@ -162,7 +162,7 @@ class ModelSession:
                     f"model file is corrupt or outdated: sha256 {actual[:12]}... != manifest {self.entry.sha256[:12]}...",
                     path=self.path, fix=MODELS_FIX)
 
-    def _create_session(self, threads: int | None, providers: list[str] | None, run_size: int | None = None):
+    def _create_session(self, threads: int | None, providers: list[str] | None, shape: tuple = ()):
         ort = import_onnxruntime()
         options = ort.SessionOptions()
         options.log_severity_level = ORT_LOG_ERRORS
@@ -178,9 +178,8 @@ class ModelSession:
         # sessions being built ahead (Models.prefetch): one photo at 512, whole process, 5.66
         # -> 5.33 s on 2 cores (bench/whole_process.py --against), the nets' own runs as fast
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        if run_size and STATIC_SHAPES:
-            for dim, value in (("N", 1), ("H", run_size), ("W", run_size)):
-                options.add_free_dimension_override_by_name(dim, value)
+        for dim, value in shape or ():  # (dim, size) pairs fixed: STATIC_SHAPES
+            options.add_free_dimension_override_by_name(dim, int(value))
         try:
             return ort.InferenceSession(str(self.path), sess_options=options,
                                         providers=providers or select_providers())
