@@ -198,12 +198,16 @@ class Models:
         `resolution`: the working side for the body refinement, the face crop's for the face
         refinement, net_side's for the nets that learned on a side; None when unknown (a
         session for any side)."""
+        from relightcli.errors import MissingDependencyError
         from relightcli.geometry.face_detect import FACE_CROP_SIZE
         from relightcli.nets.manifest import model_entry
 
         if self.resolution is None:
             return None
-        entry = model_entry(_session_classes()[family].model_name)
+        try:
+            entry = model_entry(_session_classes()[family].model_name)
+        except MissingDependencyError:  # raised again where the session is asked for
+            return None
         trained = entry.training_data.get("resolution")
         side = {"body_refine": self.resolution, "face_refine": FACE_CROP_SIZE}.get(
             family, min(self.resolution, int(trained)) if trained else None)
