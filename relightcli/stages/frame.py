@@ -196,8 +196,8 @@ class Models:
     def run_size(self, family: str) -> int | None:
         """The side (padded to the model's multiple) a family's net runs at in a crop of
         `resolution`: the working side for the body refinement, the face crop's for the face
-        refinement, net_side's for the nets that learned on a side; None when unknown (a
-        session for any side)."""
+        refinement, net_side's for the nets that learned on a side; None when unknown (the
+        session for each shape is then built at its first run: ModelSession)."""
         from relightcli.errors import MissingDependencyError
         from relightcli.geometry.face_detect import FACE_CROP_SIZE
         from relightcli.nets.manifest import model_entry
