@@ -143,10 +143,12 @@ def picture(photo: np.ndarray, relit: np.ndarray, mask: np.ndarray, region: np.n
     write_image(path, linear_to_srgb(np.clip(side, 0, None)))
 
 
-def relight(photo: Path, hdr: str, out: Path):
+def relight(photo: Path, hdr: str, out: Path, mask: Path | None = None):
+    """(the item's report, None) or (None, the error's last line); the mask: `mask`, else a
+    `<stem>_mask.png` beside the photo when there is one."""
     command = [sys.executable, "-m", "relightcli", str(photo), "--hdr", hdr, "-o", str(out / "relit.exr"),
                "--outputs", "relit,mask", "--background", "transparent", "--overwrite", "--json"]
-    mask = photo.with_name(photo.stem + "_mask.png")
+    mask = mask or photo.with_name(photo.stem + "_mask.png")
     command += ["--mask", str(mask)] if mask.is_file() else []
     result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0:
@@ -197,13 +199,9 @@ def synthetic(roots: list, models) -> list:
     with tempfile.TemporaryDirectory() as work:
         for scene in (folder for root in roots for folder in sorted(Path(root).iterdir()) if folder.is_dir()):
             out = Path(work) / scene.name
-            command = [sys.executable, "-m", "relightcli", str(scene / "input.png"), "--hdr", str(scene / "target.hdr"),
-                       "--mask", str(scene / "gt_mask.png"), "-o", str(out / "relit.exr"), "--outputs", "relit",
-                       "--background", "transparent", "--overwrite", "--json"]
-            result = subprocess.run(command, capture_output=True, text=True)
-            if result.returncode != 0:
+            report, _ = relight(scene / "input.png", str(scene / "target.hdr"), out, mask=scene / "gt_mask.png")
+            if report is None:
                 continue
-            report = json.loads(result.stdout)["items"][0]
             image, mask = read_image(scene / "input.png").rgb, read_image(scene / "gt_mask.png", srgb=False).rgb[..., 0]
             for entry in report["stages"].get("face", {}).get("faces", []):
                 region = face_region(image, entry["detection_box_photo"], mask, models) \

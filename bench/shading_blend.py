@@ -137,9 +137,12 @@ def variants() -> dict:
            for w in (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0)}
     out.update({f"oracle, blur {sigma}": (lambda sigma: lambda s: oracle_weight(s, sigma))(sigma)
                 for sigma in (0, 4, 16)})
-    for high in (0.3, 0.5, 0.7):  # more body where its normals agree with the net's
-        out[f"agreement -> {high}"] = (lambda high: lambda s: np.where(
-            features(s)["both"], 0.2 + (high - 0.2) * np.clip((features(s)["agreement"] - 0.8) / 0.2, 0, 1), 0.2))(high)
+    def agreeing(s, high):  # more body where its normals agree with the net's
+        f = features(s)
+        return np.where(f["both"], 0.2 + (high - 0.2) * np.clip((f["agreement"] - 0.8) / 0.2, 0, 1), 0.2)
+
+    for high in (0.3, 0.5, 0.7):
+        out[f"agreement -> {high}"] = lambda s, high=high: agreeing(s, high)
     for near in (0.0, 0.4, 0.6):  # the outline's ring (3% of the crop) takes `near`
         out[f"outline ring -> {near}"] = (lambda near: lambda s: np.where(
             features(s)["outline"] < 0.03, near, 0.2).astype(np.float32))(near)

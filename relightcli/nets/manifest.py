@@ -67,6 +67,12 @@ class ModelEntry:
     kind: str = "onnx"  # "onnx" for networks, "data" for other files the runtime reads
     description: str = ""
 
+    @property
+    def trained_resolution(self) -> int | None:
+        """The side of the square crops it learned on (training_data), None if unknown."""
+        trained = self.training_data.get("resolution")
+        return int(trained) if trained else None
+
 
 @dataclass(frozen=True)
 class ModelStatus:

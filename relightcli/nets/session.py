@@ -28,7 +28,6 @@ ORT_DTYPES = {"float32": "tensor(float)", "float16": "tensor(float16)", "int64":
 # the other nets 3-10% faster (back to back, 5 runs each, `ModelSession` alone); the outputs
 # differ from a free session's by float rounding (2e-7 of the refined shading), so every shape
 # runs on its own fixed session: the same bytes whichever shapes a process was prepared for
-STATIC_SHAPES = True
 FREE_DIMS = ("N", "H", "W")
 
 # Session log severity: errors only. Warnings (graph optimisation notes) mean nothing to a user
@@ -82,7 +81,7 @@ class ModelSession:
         verify_sha256: hash the file against the manifest (about 1 s per GB).
         run_size: the side of the square inputs (padded) it will run on, one at a time: the
         session for that shape is built now, any other shape's the first time one comes
-        (STATIC_SHAPES: each input shape runs on a session built for it)."""
+        (each input shape runs on a session built for it: FREE_DIMS)."""
         self.name = name or self.model_name
         if not self.name:
             raise UsageError("no model name given", fix="pass name= or use a model family class")
@@ -90,15 +89,12 @@ class ModelSession:
             raise UsageError(f"threads must be a positive integer, got {threads!r}", fix="use --threads 1 or more")
         self.entry: ModelEntry = model_entry(self.name, models_dir)
         self.path = self.entry.path
-        # The side of the square crops it learned on (manifest training_data), None if unknown
-        trained = self.entry.training_data.get("resolution")
-        self.trained_resolution: int | None = int(trained) if trained else None
+        self.trained_resolution = self.entry.trained_resolution
         self.threads, self._providers, self._shaped = threads, providers, {}
         self._check_family_contract()
         self._check_file(verify_sha256)
         # the first input with free dimensions: its (dim, size) pairs key the sessions
-        self._keyed = next((t for t in self.entry.inputs if set(t.shape) & set(FREE_DIMS)), None) \
-            if STATIC_SHAPES else None
+        self._keyed = next((t for t in self.entry.inputs if set(t.shape) & set(FREE_DIMS)), None)
         planned = {"N": 1, "H": run_size, "W": run_size}
         shape = tuple((d, planned[d]) for d in FREE_DIMS if d in self._keyed.shape) \
             if run_size and self._keyed is not None else None
@@ -178,7 +174,7 @@ class ModelSession:
         # sessions being built ahead (Models.prefetch): one photo at 512, whole process, 5.66
         # -> 5.33 s on 2 cores (bench/whole_process.py --against), the nets' own runs as fast
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        for dim, value in shape or ():  # (dim, size) pairs fixed: STATIC_SHAPES
+        for dim, value in shape or ():  # (dim, size) pairs fixed: FREE_DIMS
             options.add_free_dimension_override_by_name(dim, int(value))
         try:
             return ort.InferenceSession(str(self.path), sess_options=options,

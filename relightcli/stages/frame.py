@@ -208,9 +208,8 @@ class Models:
             entry = model_entry(_session_classes()[family].model_name)
         except MissingDependencyError:  # raised again where the session is asked for
             return None
-        trained = entry.training_data.get("resolution")
-        side = {"body_refine": self.resolution, "face_refine": FACE_CROP_SIZE}.get(
-            family, min(self.resolution, int(trained)) if trained else None)
+        fixed = {"body_refine": self.resolution, "face_refine": FACE_CROP_SIZE}
+        side = fixed.get(family, net_side(entry, self.resolution) if entry.trained_resolution else None)
         return None if side is None else -(-side // entry.multiple) * entry.multiple
 
 
