@@ -767,3 +767,45 @@ def test_the_solved_light_is_made_grey_and_keeps_its_own_shape_and_luminance():
     np.testing.assert_array_equal(grey_light(black), black)
     no_blue = solved * np.array([1.0, 1.0, 0.0], np.float32)
     np.testing.assert_array_equal(grey_light(no_blue), no_blue)
+
+
+def _relit_by_two_lines(monkeypatch, raising: str | None = None):
+    """run_stages on two threads (the default method: the de-lighting beside the ray tracing),
+    recording each stage's thread; `raising` names a stage that raises."""
+    import threading
+
+    from relightcli import stages
+
+    seen = {}
+    for name, function in list(stages.STAGES.items()):
+        def recorded(frame, options, models, name=name, function=function):
+            seen[name] = threading.current_thread().name
+            if name == raising:
+                raise RelightError(f"{name} failed")
+            function(frame, options, models)
+        monkeypatch.setitem(stages.STAGES, name, recorded)
+    image, mask = photo_with_person()
+    options = RelightOptions(outputs=("relit",), method="raytrace-norefine", resolution=32, spp=4, threads=2)
+    frame, _ = run_stages(image, mask, np.ones((8, 16, 3), np.float32), options, ItemReport("x"),
+                          StandInModels(albedo=0.25, input_light=0.6))
+    return frame, seen
+
+
+def test_on_two_threads_the_delighting_runs_beside_the_ray_tracing_with_the_same_result(monkeypatch, stand_in_normals):
+    frame, seen = _relit_by_two_lines(monkeypatch)
+    assert seen["delight"].startswith("relight-side") and seen["raytrace"] == seen["compose"] == "MainThread"
+    image, mask = photo_with_person()
+    options = RelightOptions(outputs=("relit",), method="raytrace-norefine", resolution=32, spp=4, threads=1)
+    alone, _ = run_stages(image, mask, np.ones((8, 16, 3), np.float32), options, ItemReport("x"),
+                          StandInModels(albedo=0.25, input_light=0.6))
+    for layer in ("albedo", "shading", "relit"):
+        np.testing.assert_array_equal(getattr(frame, layer), getattr(alone, layer))
+
+
+@pytest.mark.parametrize("raising", ["delight", "raytrace"])
+def test_an_error_on_either_line_fails_the_item_after_the_other_line_stopped(monkeypatch, stand_in_normals, raising):
+    import threading
+
+    with pytest.raises(RelightError, match=f"{raising} failed"):
+        _relit_by_two_lines(monkeypatch, raising)
+    assert not [t for t in threading.enumerate() if t.name.startswith("relight-side")]
