@@ -21,8 +21,8 @@ their weights in `FitConfig`:
 Stages (SMPLify): 1. initial pose in closed form from the world landmarks' bone directions and
 placement (scale, 2D offset) by weighted linear least squares against the 2D keypoints;
 2. pose + placement; 3. pose + placement + shape, the silhouette terms added when there is a
-usable mask; each by scipy.optimize.least_squares with a Jacobian by forward differences
-evaluated as one batch of parameter vectors.
+usable mask; each by Levenberg-Marquardt (`levenberg_marquardt`) with a Jacobian by forward
+differences evaluated as one batch of parameter vectors.
 
 Only FIT_BONES rotate; every other bone keeps the identity, so its world transform is that of
 its nearest rotating ancestor and the fit needs the transforms of those ~20 bones only.
@@ -40,8 +40,6 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 
 from relightcli.compose import CROP_RECT
 from relightcli.geometry.body_model import LANDMARK_NAMES, BodyModel
@@ -520,7 +518,7 @@ def silhouette_cover_residuals(points, contour, pixels_per_unit, loss_scale) -> 
     as loose clothes or hair, hardly pull. The nearest point is found for the first parameter
     set and kept for the others: they are its forward-difference neighbours, and a minimum's
     derivative is the derivative at its minimiser."""
-    _, nearest = cKDTree(points[0]).query(contour)
+    nearest = np.argmin(((points[0][:, None] - contour[None]) ** 2).sum(axis=-1), axis=0)
     distance = np.linalg.norm(points[:, nearest] - contour, axis=-1) * pixels_per_unit
     return distance * loss_scale / np.sqrt(distance ** 2 + loss_scale ** 2)
 
@@ -583,12 +581,50 @@ def _solve_stage(problem: _Problem, params: np.ndarray, free: np.ndarray,
         values = _residuals(problem, full(batch))
         return ((values[1:] - values[0]) / step).T
 
-    # Levenberg-Marquardt (MINPACK, QR): far cheaper per step here than trf's full SVD
-    result = least_squares(fun, params[free], jac=jac, method="lm", max_nfev=iterations,
-                           x_scale="jac")
     out = params.copy()
-    out[free] = result.x
+    out[free] = levenberg_marquardt(fun, jac, params[free], iterations)
     return out
+
+
+def levenberg_marquardt(fun, jac, x: np.ndarray, evaluations: int) -> np.ndarray:
+    """x (P,) lowering |fun(x)|^2 by Levenberg-Marquardt, from x: steps dx solving
+    (J^T J + mu D) dx = -J^T r, D the running maximum of diag(J^T J) (Marquardt's scaling: each
+    parameter's step in the units its residuals see it in, as MINPACK's with x_scale="jac"),
+    mu lowered after a step that lowers the cost (Nielsen's rule, by how well the linear model
+    predicted it) and raised, doubling its factor, after one that does not. At most
+    `evaluations` calls of fun (the Jacobians not counted, as MINPACK counts them); stops
+    early when the gradient or the step vanishes. fun: x (P,) -> r (M,); jac: x -> J (M, P).
+
+    Written here (issue 50): scipy.optimize, for its MINPACK least_squares alone, took 0.11-0.19
+    s of every process's start; measured against it on the eval scenes in docs/RESULTS.md."""
+    x = np.asarray(x, np.float64).copy()
+    r = fun(x)
+    cost, calls = float(r @ r), 1
+    jacobian = jac(x)
+    normal, gradient = jacobian.T @ jacobian, jacobian.T @ r
+    scale = np.where(np.diag(normal) > 0, np.diag(normal), 1.0)
+    mu, raise_by = 1e-3, 2.0
+    while calls < evaluations:
+        try:
+            step = np.linalg.solve(normal + mu * np.diag(scale), -gradient)
+        except np.linalg.LinAlgError:
+            break
+        trial = fun(x + step)
+        calls += 1
+        trial_cost = float(trial @ trial)
+        predicted = -(2.0 * step @ gradient + step @ normal @ step)
+        if not (np.isfinite(trial_cost) and trial_cost < cost and predicted > 0):
+            mu, raise_by = mu * raise_by, 2.0 * raise_by
+            continue
+        ratio = (cost - trial_cost) / predicted
+        x, r, cost = x + step, trial, trial_cost
+        jacobian = jac(x)
+        normal, gradient = jacobian.T @ jacobian, jacobian.T @ r
+        scale = np.maximum(scale, np.diag(normal))
+        mu, raise_by = mu * max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3), 2.0
+        if np.abs(step).max() <= 1e-8 * (np.abs(x).max() + 1e-8) or np.abs(gradient).max() <= 1e-12:
+            break
+    return x
 
 
 # --- the fit ---------------------------------------------------------------------------------
