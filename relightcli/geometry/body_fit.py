@@ -518,7 +518,8 @@ def silhouette_cover_residuals(points, contour, pixels_per_unit, loss_scale) -> 
     as loose clothes or hair, hardly pull. The nearest point is found for the first parameter
     set and kept for the others: they are its forward-difference neighbours, and a minimum's
     derivative is the derivative at its minimiser."""
-    nearest = np.argmin(((points[0][:, None] - contour[None]) ** 2).sum(axis=-1), axis=0)
+    body = points[0]
+    nearest = np.argmin((body ** 2).sum(axis=1)[:, None] - 2.0 * body @ contour.T, axis=0)  # + |contour|^2
     distance = np.linalg.norm(points[:, nearest] - contour, axis=-1) * pixels_per_unit
     return distance * loss_scale / np.sqrt(distance ** 2 + loss_scale ** 2)
 
