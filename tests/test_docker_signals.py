@@ -222,3 +222,21 @@ def test_a_sigterm_during_a_guarded_import_still_stops(monkeypatch, tmp_path, ca
     monkeypatch.setattr(cli, "run_info", run_info)
     assert cli.main(["info"]) == 143
     assert "stopped by SIGTERM" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, code", [(["info"], 0), (["missing.jpg", "--hdr", "missing.hdr", "-o", "out.png"], 4)])
+def test_every_program_run_ends_without_the_teardown_keeping_its_exit_code_atexit_and_output(tmp_path, args, code):
+    """main(None) ends every run itself (issue 50: the interpreter's teardown took 0.24-0.32 s
+    of a one-photo run): the exit code, what atexit holds and the buffered output survive."""
+    program = ("import atexit, sys\n"
+               "atexit.register(print, 'atexit ran')\n"
+               "from relightcli.cli import main\n"
+               f"sys.argv = ['relight', *{args!r}]\n"
+               "print('before main')\n"
+               "main()\n"
+               "print('after main')\n")  # not reached: main(None) ends the process
+    proc = subprocess.run([sys.executable, "-c", program], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == code, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == "before main" and lines[-1] == "atexit ran" and "after main" not in lines
+    assert len(lines) > 2 or code != 0  # relight info printed its report
