@@ -340,9 +340,10 @@ def _run_stage(stage: str, frame, options: RelightOptions, models, report: ItemR
 
 class SideLine:
     """A second thread that runs some stages, one after another, while the calling thread goes
-    on with the others (`--threads` 2 or more; issue 50): the de-lighting (the light solve and
-    the input shading's trace) and the face fit beside the target's ray tracing and the
-    refinement, which read none of their results. Embree's traces, ONNX Runtime's nets and
+    on with the others (`--threads` 2 or more; issue 50): the AO net, the de-lighting (the
+    light solve and the input shading's trace) and the face fit beside the mesh's
+    reconstruction, the target's ray tracing and the refinement, which read none of their
+    results. Embree's traces, ONNX Runtime's nets and
     numpy's large array operations run without the GIL, so the two lines use both cores. A
     side stage starts where the plan has it, after the calling thread's stages before it; the
     calling thread waits for it before the stage in SIDE_WAITS. Each line traces on one
@@ -356,7 +357,7 @@ class SideLine:
     and body stages, which ran beside it, slowed by more."""
 
     # side stage -> the calling thread's stage that needs its results
-    SIDE_WAITS = {"face": "face_refine", "delight": "compose"}
+    SIDE_WAITS = {"ao": "refine", "delight": "compose", "face": "face_refine"}
 
     def __init__(self, frame, options: RelightOptions, models, report: ItemReport):
         from concurrent.futures import ThreadPoolExecutor
