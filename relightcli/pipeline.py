@@ -373,8 +373,8 @@ class SideLine:
         from relightcli.stages import STAGES
         from relightcli.stages.shading import ensure_scenes
 
-        if stage == "delight":
-            ensure_scenes(self.frame, self.options, self.models)  # traced by both lines
+        if stage == "delight" and self.options.albedo == "solve":
+            ensure_scenes(self.frame, self.options, self.models)  # its light solve traces them too
         options = replace(self.options, threads=1)
 
         def run():
