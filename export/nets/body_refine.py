@@ -94,10 +94,24 @@ class AFF(nn.Module):
         )
 
     def forward(self, feats: list[torch.Tensor], level: int) -> torch.Tensor:
+        """body(concat of feats resampled to feats[level]'s size), computed without that concat:
+        the 1x1 convolution's share of each level is applied at the coarser of its two sizes
+        and only its output resampled (bilinear resampling is linear with weights summing to
+        1, so it commutes with a 1x1 convolution and its bias: the same function). At the full
+        scale of a 512 crop the concat held 120 channels: the exported net ran 0.78 -> 0.32 s
+        on one thread, the process's peak memory 0.74 -> 0.53 GB (issue 50)."""
         size = feats[level].shape[-2:]
-        resized = [f if k == level else F.interpolate(f, size=size, mode="bilinear", align_corners=False)
-                   for k, f in enumerate(feats)]
-        return self.body(torch.cat(resized, dim=1))
+        conv, rest = self.body[0][0], self.body[0][1:]
+        weights = torch.split(conv.weight, [f.shape[1] for f in feats], dim=1)
+        total = conv.bias.view(1, -1, 1, 1)
+        for k, (f, weight) in enumerate(zip(feats, weights)):
+            if k < level:  # finer: resampled down first
+                f = F.interpolate(f, size=size, mode="bilinear", align_corners=False)
+            part = F.conv2d(f, weight)
+            if k > level:  # coarser: its share resampled up
+                part = F.interpolate(part, size=size, mode="bilinear", align_corners=False)
+            total = total + part
+        return self.body[1:](rest(total))
 
 
 class BodyRefineNet(nn.Module):
