@@ -47,6 +47,9 @@ class UNetConfig:
 GEOMETRY_CONFIGS = {
     "paper": UNetConfig(width=64, max_width=1024, n_down=4, n_res=9, skips=True),
     "small": UNetConfig(width=12, max_width=96, n_down=4, n_res=2, skips=True, norm="batch"),
+    # the learning curve's widths around "small" (issue 49): half and twice its channels
+    "small_half": UNetConfig(width=6, max_width=48, n_down=4, n_res=2, skips=True, norm="batch"),
+    "small_double": UNetConfig(width=24, max_width=192, n_down=4, n_res=2, skips=True, norm="batch"),
 }
 AO_CONFIGS = GEOMETRY_CONFIGS
 

@@ -257,8 +257,9 @@ def test_train_samples_limits_training_to_the_first_samples(dataset, tmp_path):
         small_config("ao", train_samples=0)
 
 
+@pytest.mark.parametrize("net", ["delight", "geometry"])
 @pytest.mark.parametrize("size", ["small_half", "small_double"])
-def test_the_delight_learning_curve_widths_train(size, dataset, tmp_path):
-    trainer = Trainer(TrainConfig(net="delight", size=size, seed=0, steps=2, **OVERRIDES), dataset, tmp_path)
+def test_the_learning_curve_widths_train(net, size, dataset, tmp_path):
+    trainer = Trainer(TrainConfig(net=net, size=size, seed=0, steps=2, **OVERRIDES), dataset, tmp_path)
     trainer.run(steps=2, validate=False)
     assert trainer.step == 2

@@ -1,0 +1,180 @@
+"""Learning curves of a net over width and data size: is it at its limit, or short of
+capacity or of data? The de-lighting net (issue 47) and the geometry prior net (issue 49).
+
+    python bench/net_curves.py train --family delight --data data/factory256 --runs data/curves \
+        [--sizes small_half small small_double] [--samples 1200 2400] [--steps 1500] [--crop 128]
+    python bench/net_curves.py score --family delight --data data/factory256 --runs data/curves \
+        [--eval data/evalval512 data/evaltrain512] [--out bench/results/delight_curves.json]
+    python bench/net_curves.py train --family geometry_prior --data data/factory256 \
+        --runs data/curves_geometry --samples 2400 --sizes small --steps 3000
+
+`train` trains one run per (width, training samples) in turn with the runtime's inputs (for
+the de-lighting net the geometry net's normals: `python -m export.factory.coarse DATA
+--normals-only` first; for the geometry prior the fitted bodies' maps: `... --priors`), both
+cores, checkpoints every 250 steps: rerun the same command to resume where it stopped.
+`score` reads each run's training CPU-hours; with --eval it also exports each finished run's
+net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
+it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
+shipped net on the same sets, and times the exported net (one run at its 256 side on 2
+threads: the nets' budget is 0.3 s at 512). Choose on validation sets only: data/evalval512 (3
+HDRIs: its differences of 0.2-0.3 dB are within its noise) and new scenes of the training
+split's poses and maps (data/evaltrain512), never the test scenes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = {"delight": ROOT / "export/train/configs/delight_small_runtime.json",
+           "geometry_prior": ROOT / "export/train/configs/geometry_prior_small.json"}
+THREADS = 2
+
+
+def run_dir(runs: Path, size: str, samples: int) -> Path:
+    return runs / f"{size}_{samples}"
+
+
+def train_command(family: str, data: str, out: Path, size: str, samples: int, steps: int,
+                  crop: int | None) -> list[str]:
+    return [sys.executable, "-m", "export.train", family, "--config", str(CONFIGS[family]), "--data", data,
+            "--out", str(out), "--steps", str(steps), "--threads", str(THREADS),
+            "--set", f'size="{size}"', "--set", f"train_samples={samples}",
+            "--set", f"crop={'null' if crop is None else crop}"]
+
+
+def train(args) -> None:
+    for samples in args.samples:
+        for size in args.sizes:
+            out = run_dir(Path(args.runs), size, samples)
+            print(f"{out.name}: training to step {args.steps}", flush=True)
+            subprocess.run(train_command(args.family, args.data, out, size, samples, args.steps, args.crop),
+                           cwd=ROOT, check=True)
+
+
+def last_record(path: Path) -> dict:
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return json.loads(lines[-1]) if lines else {}
+
+
+def eval_scores(models: Path, scenes: str) -> dict:
+    """`relight eval` on `scenes` with the models folder `models`: relit / albedo / shading dB."""
+    env = {**os.environ, "RELIGHT_MODELS_DIR": str(models)}
+    # (exit status 1 when a scene fails, e.g. nobody found without the mask: the others count)
+    done = subprocess.run([sys.executable, "-m", "relightcli", "eval", scenes, "--json"], cwd=ROOT,
+                          env=env, capture_output=True, text=True)
+    if not done.stdout.strip():
+        raise RuntimeError(f"relight eval failed: {done.stderr[-2000:]}")
+    report = json.loads(done.stdout)
+    scores = {key: round(report[key]["psnr"], 3) for key in ("relit", "albedo", "shading") if key in report}
+    if report.get("normal"):
+        scores["normal_deg"] = round(report["normal"]["deg"], 3)
+    return scores
+
+
+def net_seconds(path: Path, side: int = 256, runs: int = 5) -> float:
+    """The median seconds of one run of an exported net at side x side on THREADS threads."""
+    import time
+
+    import numpy as np
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = THREADS
+    session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    feeds = {i.name: np.random.default_rng(0).random([1 if isinstance(d, str) and d == "N" else
+                                                       side if isinstance(d, str) else d for d in i.shape],
+                                                      dtype=np.float32) for i in session.get_inputs()}
+    seconds = []
+    for _ in range(runs + 1):
+        start = time.perf_counter()
+        session.run(None, feeds)
+        seconds.append(time.perf_counter() - start)
+    return float(np.median(seconds[1:]))
+
+
+def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict) -> dict:
+    """The product's eval on each set of scenes with this run's net in place of the shipped
+    one, and the net's run time ("seconds"); kept in the run's pipeline.json by step and set,
+    so a set is scored once."""
+    step = last_record(run / "log.jsonl").get("step", 0)
+    cache = run / "pipeline.json"
+    kept = json.loads(cache.read_text()) if cache.is_file() else {}
+    wanted = [scenes for scenes in sets if f"{step} {scenes}" not in kept]
+    if wanted or f"{step} seconds" not in kept:
+        with tempfile.TemporaryDirectory() as tmp:
+            models = Path(tmp) / "models"
+            shutil.copytree(ROOT / "models", models)
+            command = train_command(family, data, run, config["size"], config["train_samples"], step,
+                                    config.get("crop")) + ["--export-to", str(models)]
+            subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
+            kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
+            for scenes in wanted:
+                kept[f"{step} {scenes}"] = eval_scores(models, scenes)
+        cache.write_text(json.dumps(kept, indent=1) + "\n")
+    return {"seconds": kept[f"{step} seconds"], **{scenes: kept[f"{step} {scenes}"] for scenes in sets}}
+
+
+def score(args) -> None:
+    rows = []
+    if args.eval:  # the shipped net on the same scenes, for the comparison
+        rows.append({"run": "shipped", "pipeline": {"seconds": round(net_seconds(ROOT / "models" / f"{args.family}.onnx"), 4),
+                                                    **{scenes: eval_scores(ROOT / "models", scenes) for scenes in args.eval}}})
+        print(json.dumps(rows[-1]), flush=True)
+    for run in sorted(Path(args.runs).iterdir()):
+        config_path = run / "config.json"
+        if not config_path.is_file():
+            continue
+        config = json.loads(config_path.read_text())
+        log = last_record(run / "log.jsonl")
+        row = {"run": run.name, "size": config["size"], "train_samples": config["train_samples"],
+               "step": log.get("step"), "cpu_hours": round(log.get("elapsed_s", 0) * THREADS / 3600, 2)}
+        finished = row["step"] is not None and row["step"] >= config["steps"]
+        if args.eval and finished:  # (exporting validates the net again: on the val split as it is now)
+            row["pipeline"] = pipeline_scores(run, args.family, args.data, args.eval, config)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    if args.out:
+        Path(args.out).write_text(json.dumps(rows, indent=2) + "\n")
+    sets = args.eval or []
+    keys = ("relit", "albedo") if args.family == "delight" else ("shading", "normal_deg")
+    print("| run | step | CPU-hours | net s | " + " | ".join(f"{scenes}: {' / '.join(keys)}" for scenes in sets) + " |")
+    print("|---|---|---|---|" + "---|" * len(sets))
+    for row in rows:
+        pipe = row.get("pipeline", {})
+        cells = [" / ".join(str(pipe[s].get(k, "-")) for k in keys) if s in pipe else "-" for s in sets]
+        print(f"| {row['run']} | {row.get('step', '-')} | {row.get('cpu_hours', '-')} | {pipe.get('seconds', '-')} | "
+              + " | ".join(cells) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in ("train", "score"):
+        command = sub.add_parser(name)
+        command.add_argument("--family", choices=sorted(CONFIGS), default="delight")
+        command.add_argument("--data", required=True)
+        command.add_argument("--runs", required=True)
+    sub.choices["train"].add_argument("--sizes", nargs="+", default=["small_half", "small", "small_double"])
+    sub.choices["train"].add_argument("--samples", nargs="+", type=int, default=[1200, 2400])
+    sub.choices["train"].add_argument("--steps", type=int, default=1500)
+    sub.choices["train"].add_argument("--crop", type=int, default=None,
+                                      help="training crop (default: 128 for delight, whole samples otherwise)")
+    sub.choices["score"].add_argument("--eval", nargs="+",
+                                      help="sets of eval scenes to run the product on with each net")
+    sub.choices["score"].add_argument("--out")
+    args = parser.parse_args()
+    if args.command == "train" and args.crop is None and args.family == "delight":
+        args.crop = 128  # the de-lighting runs' crop (issue 47's first points)
+    train(args) if args.command == "train" else score(args)
+
+
+if __name__ == "__main__":
+    main()
