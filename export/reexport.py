@@ -34,8 +34,8 @@ from relightcli.nets.manifest import MANIFEST_NAME, sha256_file
 
 
 def net_from_onnx(path: Path) -> torch.nn.Module:
-    """The torch module of the file's family and config, with the file's weights (strict:
-    every parameter named by an initializer, none left over)."""
+    """The torch module of the file's family and config, with the file's weights: every
+    parameter and buffer of the module read from the initializer of its name."""
     model = onnx.load(path)
     contract = json.loads({p.key: p.value for p in model.metadata_props}[METADATA_KEY])
     cls, configs = FAMILIES[contract["family"]]
