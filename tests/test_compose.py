@@ -458,3 +458,42 @@ def test_a_dip_of_the_input_shading_the_photo_does_not_show_makes_no_bright_spot
     # A shadow the photo shows stays in the shading (the albedo is not darkened by it)
     photo[44:52, 44:52] *= 0.08
     np.testing.assert_allclose(shading_the_photo_shows(shading, photo, mask, sigma=8.0)[44:52, 44:52], 0.08, rtol=0.05)
+
+
+def _fill_over_the_whole_image(values, covered, wanted):
+    """fill_uncovered's definition: the nearest covered pixel by a transform of the whole image."""
+    from scipy.ndimage import distance_transform_edt
+
+    holes = wanted & ~covered
+    _, (rows, cols) = distance_transform_edt(~covered, return_indices=True)
+    filled = values.copy()
+    filled[holes] = values[rows[holes], cols[holes]]
+    return filled
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fill_uncovered_within_its_box_is_the_whole_images_fill(seed):
+    """The transform runs over the box around the covered pixels and the holes only: the same
+    nearest pixels, ties included (a symmetric cover leaves many equidistant ones)."""
+    from relightcli.compose import fill_uncovered
+
+    rng = np.random.default_rng(seed)
+    covered = np.zeros((60, 50), bool)
+    if seed == 0:  # two covered pixels mirrored about the holes' column: every hole is a tie
+        covered[30, 10] = covered[30, 40] = True
+    else:
+        covered[15:45, 12:30] = rng.random((30, 18)) < 0.6
+    wanted = np.zeros_like(covered)
+    wanted[10:50, 8:38] = True
+    values = rng.random((60, 50, 2)).astype(np.float32)
+    np.testing.assert_array_equal(fill_uncovered(values, covered, wanted),
+                                  _fill_over_the_whole_image(values, covered, wanted))
+
+
+def test_bounding_box():
+    from relightcli.compose import bounding_box
+
+    mask = np.zeros((8, 9), bool)
+    assert bounding_box(mask) == (slice(0, 0), slice(0, 0))
+    mask[2, 7] = mask[5, 3] = True
+    assert bounding_box(mask) == (slice(2, 6), slice(3, 8))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from relightcli import compose
-from relightcli.compose import fill_uncovered
+from relightcli.compose import bounding_box, fill_uncovered
 from relightcli.layers import DEFAULT_SPP_CAP, DEFAULT_TARGET_ERROR, SHADOW_STEP
 from relightcli.stages.body import body_shading_pixels
 from relightcli.stages.frame import Frame, Models, person_support
@@ -189,22 +189,27 @@ def traced(scene, hits, light, spp, target, seed, threads, wanted, step) -> tupl
                            np.ones(coarse.mask.shape, bool))
     full = np.zeros(hits.mask.shape + (3,), np.float32)
     full[hits.mask] = light.irradiance(hits.normal[hits.mask])
-    values = upsample(ratio.astype(np.float32), hits.mask.shape, step) * np.concatenate([full, full], axis=-1)
+    # zero where no hit: upsampled over the hits' box only
+    box = bounding_box(hits.mask)
+    values = np.zeros(hits.mask.shape + (6,), np.float32)
+    values[box] = upsample(ratio.astype(np.float32), hits.mask.shape, step, box) * \
+        np.concatenate([full[box], full[box]], axis=-1)
     return fill_uncovered(values, hits.mask, wanted), result
 
 
-def upsample(image: np.ndarray, shape: tuple, step: int) -> np.ndarray:
+def upsample(image: np.ndarray, shape: tuple, step: int, box: tuple | None = None) -> np.ndarray:
     """(H, W, C) bilinear from a coarse image (h, w, C) whose pixel (i, j) lies on pixel
     (step i, step j) of the fine one (PixelGeometry.subsampled); held beyond its last row and
-    column."""
-    def axis(n, coarse):
-        at = np.arange(n) / step
+    column. box: (rows, columns) slices of the fine image: only that window of it."""
+    def axis(fine, coarse):
+        at = np.arange(fine.start, fine.stop) / step
         low = np.minimum(at.astype(np.int64), coarse - 1)
         high = np.minimum(low + 1, coarse - 1)
         return low, high, np.clip(at - low, 0.0, 1.0).astype(np.float32)[:, None]
 
-    r0, r1, fr = axis(shape[0], image.shape[0])
-    c0, c1, fc = axis(shape[1], image.shape[1])
+    rows, cols = box or (slice(0, shape[0]), slice(0, shape[1]))
+    r0, r1, fr = axis(rows, image.shape[0])
+    c0, c1, fc = axis(cols, image.shape[1])
     rows = image[r0] * (1.0 - fr[..., None]) + image[r1] * fr[..., None]
     return rows[:, c0] * (1.0 - fc) + rows[:, c1] * fc
 

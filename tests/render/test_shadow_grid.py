@@ -41,6 +41,13 @@ def test_upsampling_keeps_the_coarse_pixels_and_interpolates_between_them():
     np.testing.assert_array_equal(fine[:, 7], fine[:, 6])
 
 
+
+def test_upsampling_a_window_is_that_window_of_the_whole():
+    coarse = np.random.default_rng(1).random((9, 7, 3)).astype(np.float32)
+    whole = upsample(coarse, (36, 28), 4)
+    box = (slice(5, 31), slice(3, 11))
+    np.testing.assert_array_equal(upsample(coarse, (36, 28), 4, box), whole[box])
+
 def _render(scene, hits, env, step, spp=64):
     light = EnvironmentLight(env)
     values, result = traced(scene, hits, light, spp, None, 3, 1, hits.mask, step)
