@@ -43,8 +43,13 @@ def runtime_venv(tmp_path_factory):
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     python = venv / "bin" / "python"
     src = root / "src"  # a copy, so the build leaves nothing in the checkout
-    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
-        ".git", ".venv*", "*.egg-info", "build", "dist", "__pycache__", "examples", "bench", "export", "tests"))
+    skipped = shutil.ignore_patterns(".git", ".venv*", "*.egg-info", "build", "dist", "__pycache__", "examples",
+                                     "bench", "export", "tests")
+
+    def ignore(folder, names):  # and the checkout's own data/ (gitignored: datasets being written)
+        return skipped(folder, names) | ({"data"} if Path(folder) == REPO else set())
+
+    shutil.copytree(REPO, src, ignore=ignore)
     pip = [str(python), "-m", "pip", "--disable-pip-version-check", "--quiet"]
     _run_or_fail(pip + ["wheel", "--no-deps", "-w", str(root / "dist"), str(src)])
     wheel = next((root / "dist").glob("relightcli-*.whl"))
