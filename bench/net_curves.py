@@ -15,10 +15,11 @@ cores, checkpoints every 250 steps: rerun the same command to resume where it st
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
-shipped net on the same sets, and times the exported net (one run at its 256 side on 2
-threads: the nets' budget is 0.3 s at 512). Choose on validation sets only: data/evalval512 (3
-HDRIs: its differences of 0.2-0.3 dB are within its noise) and new scenes of the training
-split's poses and maps (data/evaltrain512), never the test scenes.
+shipped net on the same sets (kept in RUNS/shipped.json by its sha256), and times the exported
+net (one run at its 256 side on 2 threads: the nets' budget is 0.3 s at 512). Choose on
+validation sets only: data/evalval512 (3 HDRIs: its differences of 0.2-0.3 dB are within its
+noise) and new scenes of the training split's poses and maps (data/evaltrain512), never the
+test scenes.
 """
 
 from __future__ import annotations
@@ -122,11 +123,27 @@ def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict)
     return {"seconds": kept[f"{step} seconds"], **{scenes: kept[f"{step} {scenes}"] for scenes in sets}}
 
 
+def shipped_scores(runs: Path, family: str, sets: list) -> dict:
+    """pipeline_scores for the shipped models, kept in runs/shipped.json by the shipped net's
+    sha256 and set."""
+    from relightcli.nets.manifest import sha256_file
+
+    sha = sha256_file(ROOT / "models" / f"{family}.onnx")[:16]
+    cache = runs / "shipped.json"
+    kept = json.loads(cache.read_text()) if cache.is_file() else {}
+    if f"{sha} seconds" not in kept:
+        kept[f"{sha} seconds"] = round(net_seconds(ROOT / "models" / f"{family}.onnx"), 4)
+    for scenes in sets:
+        if f"{sha} {scenes}" not in kept:
+            kept[f"{sha} {scenes}"] = eval_scores(ROOT / "models", scenes)
+    cache.write_text(json.dumps(kept, indent=1) + "\n")
+    return {"seconds": kept[f"{sha} seconds"], **{scenes: kept[f"{sha} {scenes}"] for scenes in sets}}
+
+
 def score(args) -> None:
     rows = []
     if args.eval:  # the shipped net on the same scenes, for the comparison
-        rows.append({"run": "shipped", "pipeline": {"seconds": round(net_seconds(ROOT / "models" / f"{args.family}.onnx"), 4),
-                                                    **{scenes: eval_scores(ROOT / "models", scenes) for scenes in args.eval}}})
+        rows.append({"run": "shipped", "pipeline": shipped_scores(Path(args.runs), args.family, args.eval)})
         print(json.dumps(rows[-1]), flush=True)
     for run in sorted(Path(args.runs).iterdir()):
         config_path = run / "config.json"
