@@ -2,16 +2,18 @@
 capacity or of data? The de-lighting net (issue 47) and the geometry prior net (issue 49).
 
     python bench/net_curves.py train --family delight --data data/factory256 --runs data/curves \
-        [--sizes small_half small small_double] [--samples 1200 2400] [--steps 1500] [--crop 128]
+        [--sizes small_half small small_double] [--samples 1200 2400] [--steps N] [--crop 128]
     python bench/net_curves.py score --family delight --data data/factory256 --runs data/curves \
         [--eval data/evalval512 data/evaltrain512] [--out bench/results/delight_curves.json]
     python bench/net_curves.py train --family geometry_prior --data data/factory256 \
-        --runs data/curves_geometry --samples 2400 --sizes small --steps 3000
+        --runs data/curves_geometry --samples 2400 --sizes small
 
 `train` trains one run per (width, training samples) in turn with the runtime's inputs (for
 the de-lighting net the geometry net's normals: `python -m export.factory.coarse DATA
 --normals-only` first; for the geometry prior the fitted bodies' maps: `... --priors`), both
-cores, checkpoints every 250 steps: rerun the same command to resume where it stopped.
+cores, checkpoints every 250 steps: rerun the same command to resume where it stopped. Runs
+train for the family's STEPS; one of another --steps is another run (SIZE_N_stepsS), the length
+axis.
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -37,10 +39,12 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = {"delight": ROOT / "export/train/configs/delight_small_runtime.json",
            "geometry_prior": ROOT / "export/train/configs/geometry_prior_small.json"}
 THREADS = 2
+# Each family's training length; a run of another length is named for it (the length axis)
+STEPS = {"delight": 1500, "geometry_prior": 3000}
 
 
-def run_dir(runs: Path, size: str, samples: int) -> Path:
-    return runs / f"{size}_{samples}"
+def run_dir(runs: Path, family: str, size: str, samples: int, steps: int) -> Path:
+    return runs / (f"{size}_{samples}" + ("" if steps == STEPS[family] else f"_steps{steps}"))
 
 
 def train_command(family: str, data: str, out: Path, size: str, samples: int, steps: int,
@@ -54,7 +58,7 @@ def train_command(family: str, data: str, out: Path, size: str, samples: int, st
 def train(args) -> None:
     for samples in args.samples:
         for size in args.sizes:
-            out = run_dir(Path(args.runs), size, samples)
+            out = run_dir(Path(args.runs), args.family, size, samples, args.steps)
             print(f"{out.name}: training to step {args.steps}", flush=True)
             subprocess.run(train_command(args.family, args.data, out, size, samples, args.steps, args.crop),
                            cwd=ROOT, check=True)
@@ -181,15 +185,17 @@ def main() -> None:
         command.add_argument("--runs", required=True)
     sub.choices["train"].add_argument("--sizes", nargs="+", default=["small_half", "small", "small_double"])
     sub.choices["train"].add_argument("--samples", nargs="+", type=int, default=[1200, 2400])
-    sub.choices["train"].add_argument("--steps", type=int, default=1500)
+    sub.choices["train"].add_argument("--steps", type=int, default=None, help="default: the family's (STEPS)")
     sub.choices["train"].add_argument("--crop", type=int, default=None,
                                       help="training crop (default: 128 for delight, whole samples otherwise)")
     sub.choices["score"].add_argument("--eval", nargs="+",
                                       help="sets of eval scenes to run the product on with each net")
     sub.choices["score"].add_argument("--out")
     args = parser.parse_args()
-    if args.command == "train" and args.crop is None and args.family == "delight":
-        args.crop = 128  # the de-lighting runs' crop (issue 47's first points)
+    if args.command == "train":
+        args.steps = args.steps or STEPS[args.family]
+        if args.crop is None and args.family == "delight":
+            args.crop = 128  # the de-lighting runs' crop (issue 47's first points)
     train(args) if args.command == "train" else score(args)
 
 
