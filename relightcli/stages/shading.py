@@ -207,9 +207,9 @@ def upsample(image: np.ndarray, shape: tuple, step: int, box: tuple | None = Non
         high = np.minimum(low + 1, coarse - 1)
         return low, high, np.clip(at - low, 0.0, 1.0).astype(np.float32)[:, None]
 
-    rows, cols = box or (slice(0, shape[0]), slice(0, shape[1]))
-    r0, r1, fr = axis(rows, image.shape[0])
-    c0, c1, fc = axis(cols, image.shape[1])
+    fine_rows, fine_cols = box or (slice(0, shape[0]), slice(0, shape[1]))
+    r0, r1, fr = axis(fine_rows, image.shape[0])
+    c0, c1, fc = axis(fine_cols, image.shape[1])
     rows = image[r0] * (1.0 - fr[..., None]) + image[r1] * fr[..., None]
     return rows[:, c0] * (1.0 - fc) + rows[:, c1] * fc
 
