@@ -94,9 +94,9 @@ def net_seconds(path: Path, side: int = 256, runs: int = 5) -> float:
     options = ort.SessionOptions()
     options.intra_op_num_threads = THREADS
     session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
-    feeds = {i.name: np.random.default_rng(0).random([1 if isinstance(d, str) and d == "N" else
-                                                       side if isinstance(d, str) else d for d in i.shape],
-                                                      dtype=np.float32) for i in session.get_inputs()}
+    rng = np.random.default_rng(0)
+    feeds = {i.name: rng.random([1 if d == "N" else side if isinstance(d, str) else d for d in i.shape],
+                                dtype=np.float32) for i in session.get_inputs()}
     seconds = []
     for _ in range(runs + 1):
         start = time.perf_counter()

@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from relightcli.compose import bounding_box
+
 # At a 512-pixel crop: the half-width of a part is looked for within 16 px of a pixel (wider
 # parts get rounded sides of that radius), the blend's weight falls by e every 16 px in from
 # the outline, the distance map is smoothed by 1.5 px before its gradient gives the outline's
@@ -73,12 +75,9 @@ def _over_outlined_box(normals, inside, outside_photo, weighted):
     side = max(inside.shape)
     radius = max(int(round(PART_RADIUS * side)), 1)
     sigma = max(GRADIENT_SIGMA * side, 1.0)
-    rows, cols = np.nonzero(inside)
-    if rows.size == 0:
+    if not inside.any():
         return normals
-    margin = radius + int(np.ceil(4 * sigma)) + 2
-    box = (slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
-           slice(max(cols.min() - margin, 0), cols.max() + margin + 1))
+    box = bounding_box(inside, margin=radius + int(np.ceil(4 * sigma)) + 2)
     person = inside[box]
     solid = person if outside_photo is None else person | np.asarray(outside_photo, bool)[box]
     if solid.all():
