@@ -196,11 +196,12 @@ class Dataset:
             raise InputError("sample not found", path=path, fix="list samples with .ids(split)")
         return np.load(path, allow_pickle=False)
 
-    def load(self, split: str, sample_id: str) -> dict:
-        """name -> float32 array of one sample (decoded, see the module docstring)."""
+    def load(self, split: str, sample_id: str, names=None) -> dict:
+        """name -> float32 array of one sample (decoded, see the module docstring); names: only
+        those of them the sample has (each array is decompressed on its own), None: all."""
         with self._open(split, sample_id) as stored:
-            names = [n for n in stored.files if "__" not in n]
-            return {name: _decode(name, stored) for name in names}
+            found = [n for n in stored.files if "__" not in n and (names is None or n in names)]
+            return {name: _decode(name, stored) for name in found}
 
     def load_raw(self, split: str, sample_id: str, name: str) -> np.ndarray:
         """One array exactly as stored (e.g. the uint8 sRGB "input")."""

@@ -111,8 +111,8 @@ class FakeDataset:
             raise KeyError(f"unknown split {split!r}; known: {self.split_names}")
         return sorted(self.samples[split])
 
-    def load(self, split: str, sample_id: str) -> dict[str, np.ndarray]:
-        return {k: v.copy() for k, v in self.samples[split][sample_id].items()}
+    def load(self, split: str, sample_id: str, names=None) -> dict[str, np.ndarray]:
+        return {k: v.copy() for k, v in self.samples[split][sample_id].items() if names is None or k in names}
 
 
 def write_fake_dataset(root, counts: dict[str, int] | None = None, size: int = 32, seed: int = 0):

@@ -77,6 +77,10 @@ class Task:
     def build_discriminator(self) -> nn.Module | None:
         return None
 
+    def sample_keys(self) -> tuple[str, ...] | None:
+        """The dataset arrays `example` reads (the trainer loads only those), None: all."""
+        return None
+
     def example(self, sample: dict, rng: np.random.Generator) -> dict | None:
         raise NotImplementedError
 
@@ -104,6 +108,9 @@ class GeometryTask(Task):
 
     family = "geometry"
     input_keys = ("image",)
+
+    def sample_keys(self):
+        return ("input", "normal", "back_normal", "front_depth", "back_depth", "mask", "rect")
 
     def example(self, sample, rng):
         front, back = data.relative_depths(sample)
@@ -137,6 +144,9 @@ class GeometryTask(Task):
         }
 
 
+PRIOR_KEYS = ("prior_mask", "prior_normal", "prior_back_normal", "prior_front_depth", "prior_back_depth")
+
+
 def sample_prior(sample: dict) -> np.ndarray:
     """relightcli.nets.geometry.prior_channels of a sample's "prior_*" maps, at its side."""
     return prior_channels(sample["prior_mask"], sample["prior_normal"], sample["prior_back_normal"],
@@ -151,6 +161,9 @@ class GeometryPriorTask(GeometryTask):
 
     family = "geometry_prior"
     input_keys = ("image", "prior")
+
+    def sample_keys(self):
+        return super().sample_keys() + PRIOR_KEYS
 
     def example(self, sample, rng):
         if "prior_mask" not in sample:
@@ -175,6 +188,9 @@ class AOTask(Task):
     family = "ao"
     input_keys = ("image",)
 
+    def sample_keys(self):
+        return ("input", "ao", "mask")
+
     def example(self, sample, rng):
         return {"image": chw(sample["input"]), "ao": chw(sample["ao"]), "mask": chw(sample["mask"])}
 
@@ -195,6 +211,9 @@ class AOPriorTask(AOTask):
 
     family = "ao_prior"
     input_keys = ("image", "prior")
+
+    def sample_keys(self):
+        return super().sample_keys() + PRIOR_KEYS + ("prior_ao",)
 
     def example(self, sample, rng):
         if "prior_ao" not in sample:
@@ -229,6 +248,9 @@ class DelightTask(Task):
     def __init__(self, config: TrainConfig):
         super().__init__(config)
         self._projection = None
+
+    def sample_keys(self):
+        return ("input", "normal", self.config.normal_key, "albedo", "light_a", "mask", "shading_a")
 
     def example(self, sample, rng):
         if self.config.normal_key not in sample:

@@ -76,7 +76,8 @@ class Trainer:
         examples, misses = [], 0
         while len(examples) < self.config.batch_size:
             sample_id = self.train_ids[int(self.rng.integers(len(self.train_ids)))]
-            sample = augment(self.dataset.load("train", sample_id), self.rng, self.config.flip,
+            loaded = self.dataset.load("train", sample_id, self.task.sample_keys())
+            sample = augment(loaded, self.rng, self.config.flip,
                              None if self.task.family == "face_refine" else self.config.crop)
             example = self.task.example(sample, self.rng)
             if example is None:
@@ -172,7 +173,7 @@ class Trainer:
         limit = self.config.val_max_samples if max_samples is None else max_samples
         totals: dict[str, list[float]] = {}
         for sample_id in list(self.dataset.ids(split))[:limit]:
-            sample = self.dataset.load(split, sample_id)
+            sample = self.dataset.load(split, sample_id, self.task.sample_keys())
             example = self.task.example(sample, sample_rng(self.config.seed, split, sample_id))
             if example is None:
                 continue

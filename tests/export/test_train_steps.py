@@ -11,7 +11,7 @@ from torch import nn
 from export.train.config import ConfigError, TrainConfig
 from export.train.data import sample_rng
 from export.train.fake_data import FakeDataset
-from export.train.tasks import hwc, protocol_encode
+from export.train.tasks import hwc, make_task, protocol_encode
 from export.train.trainer import Trainer, TrainingError
 from relightcli import metrics
 
@@ -38,6 +38,18 @@ def test_a_few_steps_lower_the_loss(net, dataset, tmp_path):
     for _ in range(6):
         last = trainer.train_step(batch)["reconstruction"]
     assert last < 0.9 * first
+
+
+@pytest.mark.parametrize("net", ["geometry", "geometry_prior", "ao", "ao_prior", "delight"])
+def test_the_arrays_a_task_loads_are_all_its_examples_read(net, dataset):
+    # the trainer loads only task.sample_keys(): the examples must be those of whole samples
+    task = make_task(small_config(net))
+    for sample_id in dataset.ids("train"):
+        whole = task.example(dataset.load("train", sample_id), np.random.default_rng(1))
+        some = task.example(dataset.load("train", sample_id, task.sample_keys()), np.random.default_rng(1))
+        assert whole.keys() == some.keys()
+        for key in whole:
+            assert np.array_equal(whole[key], some[key]), key
 
 
 @pytest.mark.parametrize("net", ["body_refine", "geometry_prior", "ao_prior"])
@@ -141,7 +153,7 @@ class RenderedDataset(FakeDataset):
     """The fake samples plus what export.factory.coarse and face_closeups add: a coarse body
     shading, a predicted AO and, the samples being 32 px like the face crop, close-up arrays."""
 
-    def load(self, split, sample_id):
+    def load(self, split, sample_id, names=None):
         sample = super().load(split, sample_id)
         sample["coarse_shading_b"] = 0.7 * sample["shading_b"]
         sample["ao_pred"] = np.full_like(sample["ao"], 0.5)
@@ -227,8 +239,8 @@ class WithPredictedNormals:
     def ids(self, split):
         return self.data.ids(split)
 
-    def load(self, split, sample_id):
-        sample = self.data.load(split, sample_id)
+    def load(self, split, sample_id, names=None):
+        sample = self.data.load(split, sample_id, names)
         sample["normal_pred"] = sample["normal"] * np.array([-1, 1, 1], np.float32)
         return sample
 
