@@ -1,7 +1,7 @@
 """Levers on the input light, measured offline on the light solve's own inputs (issue 47).
 
     python bench/light_levers.py capture data/evalval512 data/factory512val --split val --cache data/lightcache/val
-    python bench/light_levers.py levers data/lightcache/val
+    python bench/light_levers.py levers data/lightcache/val [--only today parametric]
     python bench/light_levers.py level data/lightcache/train data/lightcache/val data/lightcache/test
 
 `capture` runs the default pipeline (`raytrace-norefine`, the true mask) on every scene folder
@@ -169,6 +169,44 @@ def reweighted(z: dict, sigma: float, rounds: int = 3) -> np.ndarray:
     return solved(z, weights=weights)
 
 
+def sky_lobes(height: int = 16, width: int = 32, count: int = 14, sharpness: float = 2.0) -> np.ndarray:
+    """(H*W, count + 1) non-negative smooth lights: a constant and `count` wide lobes
+    exp(sharpness (d.a - 1)) about the cube's 6 face and 8 corner directions."""
+    from relightcli.io.envmap import texel_directions
+
+    axes = np.concatenate([np.eye(3), -np.eye(3), np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1)
+                                                            for z in (-1, 1)]) / np.sqrt(3)])[:count]
+    d = texel_directions(height, width).reshape(-1, 3)
+    return np.concatenate([np.ones((d.shape[0], 1)), np.exp(sharpness * (d @ axes.T - 1.0))], axis=1)
+
+
+def sun_and_sky(z: dict, seen_share: float = 0.02, with_sun: bool = True, relative: bool = True) -> np.ndarray:
+    """A parametric light fitted to the photo's luminance over the net's: a non-negative sky of
+    wide lobes (sky_lobes) plus one sun in a single texel, every texel the pixels see tried as
+    the sun's (non-negative least squares on the relative residual each), the best kept; grey."""
+    from scipy.optimize import nnls
+
+    usable = z["usable"]
+    photo, albedo = z["photo"][usable] @ LUMINANCE, z["net_albedo"][usable] @ LUMINANCE
+    matrix = z["matrix"][usable]
+    w = 1.0 / np.maximum(photo, 1e-3) if relative else np.ones_like(photo)
+    lobes = sky_lobes()
+    sky = (albedo * w)[:, None] * (matrix @ lobes)
+    target = photo * w
+    seen = np.maximum(matrix, 0.0).sum(axis=0)
+    best = (np.inf, None, None)
+    for texel in (np.flatnonzero(seen >= seen_share * seen.max()) if with_sun else [None]):
+        design = sky if texel is None else np.concatenate([sky, (albedo * w * matrix[:, texel])[:, None]], axis=1)
+        x, residual = nnls(design, target, maxiter=50 * design.shape[1])
+        if residual < best[0]:
+            best = (residual, texel, x)
+    _, texel, x = best
+    light = lobes @ x[:lobes.shape[1]]
+    if texel is not None:
+        light[texel] += x[-1]
+    return np.repeat(light.reshape(16, 32, 1), 3, axis=-1)
+
+
 LEVERS = {
     "today (the solved light)": lambda z: z["solved_light"],
     "the de-lighting net's light": lambda z: z["net_light"],
@@ -191,14 +229,20 @@ LEVERS = {
     "prior weight 1": lambda z: solved(z, prior_weight=1.0),
     "quadratic smoothing": lambda z: solved(z, edge_scale=None),
     "4 rounds (2)": lambda z: solved(z, rounds=4),
+    "parametric: sky lobes alone": lambda z: sun_and_sky(z, with_sun=False),
+    "parametric: sky lobes + one sun texel": sun_and_sky,
+    "  absolute residuals, sky alone": lambda z: sun_and_sky(z, with_sun=False, relative=False),
+    "  absolute residuals, + sun": lambda z: sun_and_sky(z, relative=False),
 }
 
 
-def levers(cache: Path) -> None:
+def levers(cache: Path, only: list | None = None) -> None:
     scenes = [load(path) for path in sorted(cache.glob("*.npz"))]
     print(f"{len(scenes)} scenes; albedo dB (own level / oracle level), level error RMS (stops), "
           "input shading shape (stops), light direction error (deg)")
     for name, lever in LEVERS.items():
+        if only and not any(part in name for part in only):
+            continue
         rows = [score(lever(z), z) for z in scenes]
         mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
         rms = float(np.sqrt(np.mean([r["level"] ** 2 for r in rows])))
@@ -243,13 +287,15 @@ def main() -> int:
     keep.add_argument("factory")
     keep.add_argument("--split", default="val")
     keep.add_argument("--cache", type=Path, required=True)
-    commands.add_parser("levers").add_argument("cache", type=Path)
+    chosen = commands.add_parser("levers")
+    chosen.add_argument("cache", type=Path)
+    chosen.add_argument("--only", nargs="+", help="the levers whose names contain one of these")
     commands.add_parser("level").add_argument("caches", type=Path, nargs="+")
     args = parser.parse_args()
     if args.command == "capture":
         capture(args.scenes, args.factory, args.split, args.cache)
     elif args.command == "levers":
-        levers(args.cache)
+        levers(args.cache, args.only)
     else:
         level(args.caches)
     return 0

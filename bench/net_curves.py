@@ -36,6 +36,7 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 CONFIGS = {"delight": ROOT / "export/train/configs/delight_small_runtime.json",
            "geometry_prior": ROOT / "export/train/configs/geometry_prior_small.json"}
 THREADS = 2
@@ -86,23 +87,17 @@ def eval_scores(models: Path, scenes: str) -> dict:
 
 def net_seconds(path: Path, side: int = 256, runs: int = 5) -> float:
     """The median seconds of one run of an exported net at side x side on THREADS threads."""
-    import time
-
     import numpy as np
-    import onnxruntime as ort
+    import onnx
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = THREADS
-    session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    from export.reexport import run_seconds
+
     rng = np.random.default_rng(0)
-    feeds = {i.name: rng.random([1 if d == "N" else side if isinstance(d, str) else d for d in i.shape],
-                                dtype=np.float32) for i in session.get_inputs()}
-    seconds = []
-    for _ in range(runs + 1):
-        start = time.perf_counter()
-        session.run(None, feeds)
-        seconds.append(time.perf_counter() - start)
-    return float(np.median(seconds[1:]))
+    shapes = {i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim]
+              for i in onnx.load(path, load_external_data=False).graph.input}
+    feeds = {name: rng.random([1 if d == "N" else side if isinstance(d, str) else d for d in shape], dtype=np.float32)
+             for name, shape in shapes.items()}
+    return run_seconds(path, feeds, runs, THREADS, warm_up=True)[1]
 
 
 def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict) -> dict:

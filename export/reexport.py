@@ -50,13 +50,16 @@ def net_from_onnx(path: Path) -> torch.nn.Module:
     return net.eval()
 
 
-def run_seconds(path: Path, feeds: dict, runs: int = 3) -> tuple[list, float]:
-    """(outputs, the median seconds of `runs` runs on one thread)."""
+def run_seconds(path: Path, feeds: dict, runs: int = 3, threads: int = 1, warm_up: bool = False) -> tuple[list, float]:
+    """(outputs, the median seconds of `runs` runs on `threads` threads, after one untimed run
+    if `warm_up`)."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
+    options.intra_op_num_threads = threads
     session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    if warm_up:
+        session.run(None, feeds)
     seconds = []
     for _ in range(runs):
         start = time.perf_counter()
