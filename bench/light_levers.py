@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from light_solve import light_errors  # noqa: E402
 
 from relightcli import compose  # noqa: E402
-from relightcli.render.inverse import Transport, solve_light  # noqa: E402
+from relightcli.render.inverse import Transport, solve_light, solve_light_by_regions  # noqa: E402
 from relightcli.stages import delight  # noqa: E402
 
 LUMINANCE = compose.LUMINANCE
@@ -157,6 +157,13 @@ def region_gains(z: dict, k: int, rounds: int = 4) -> np.ndarray:
     return solved(z, z["net_albedo"] * gains[labels][:, None])
 
 
+def by_regions(z: dict, regions: int, **settings) -> np.ndarray:
+    """The product's solve_light_by_regions: one albedo colour per region, solved with the light."""
+    transport = Transport(z["matrix"].astype(np.float32), z["pixels"], (16, 32))
+    return delight.grey_light(solve_light_by_regions(transport, z["photo"], z["net_albedo"], z["usable"].astype(np.float64),
+                                                     z["net_light"], regions, **settings).light)
+
+
 def reweighted(z: dict, sigma: float, rounds: int = 3) -> np.ndarray:
     """Iteratively reweighted: pixels whose photo the fit misses by much (the net's albedo
     wrong there) count less (Cauchy weights on the log residual, sigma in nats)."""
@@ -229,6 +236,12 @@ LEVERS = {
     "prior weight 1": lambda z: solved(z, prior_weight=1.0),
     "quadratic smoothing": lambda z: solved(z, edge_scale=None),
     "4 rounds (2)": lambda z: solved(z, rounds=4),
+    "one albedo colour per region, 3 regions": lambda z: by_regions(z, 3),
+    "  one colour, 6 regions": lambda z: by_regions(z, 6),
+    "  one colour, 12 regions": lambda z: by_regions(z, 12),
+    "  one colour, 6 regions, 2 rounds (4)": lambda z: by_regions(z, 6, rounds=2),
+    "  one colour, 6 regions, 1 round": lambda z: by_regions(z, 6, rounds=1),
+    "  one colour, 6 regions, 0 rounds (the net's mean per region)": lambda z: by_regions(z, 6, rounds=0),
     "parametric: sky lobes alone": lambda z: sun_and_sky(z, with_sun=False),
     "parametric: sky lobes + one sun texel": sun_and_sky,
     "  absolute residuals, sky alone": lambda z: sun_and_sky(z, with_sun=False, relative=False),

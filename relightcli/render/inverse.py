@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relightcli.io.envmap import direction_to_uv, texel_directions, texel_solid_angles, uv_to_direction
+from relightcli.io.images import LUMINANCE
 from relightcli.render.environment import lookup_normal_table
 from relightcli.render.estimators import cosine_directions, lifted_origins, visible
 
@@ -236,6 +237,59 @@ def solve_light(transport: Transport, photo: np.ndarray, albedo: np.ndarray, wei
                      for g, f, b in zip(gains, fits.T, targets.T))
     light = shape[:, None] * gains[None, :]
     return LightSolve(light.reshape(height, width, 3).astype(np.float32), residual, int(used.sum()))
+
+
+def solve_light_by_regions(transport: Transport, photo: np.ndarray, albedo: np.ndarray, weights: np.ndarray,
+                           prior: np.ndarray, regions: int = 6, rounds: int = 4, **settings) -> LightSolve:
+    """solve_light with an albedo of one colour per region of the person (albedo_regions)
+    instead of the net's albedo itself: the colours and the light solved in turn, `rounds`
+    times, the colours' log mean luminance held at the net albedo's. The net leaves part of the
+    shading in its albedo (light_levers: ~0.35 of its log), and the solve divided by it then
+    explains that part away; inside one piece of cloth the photo's own variation is the
+    shading. Where the photo's colours split a garment or a pattern (a region of several
+    albedos), that region's colour is their mean."""
+    labels = albedo_regions(photo, albedo, regions)
+    used = np.asarray(weights) > 0
+    present = [j for j in range(regions) if (labels == j).any()]
+    colours = np.full((regions, 3), 0.5)
+    for j in present:
+        colours[j] = albedo[labels == j].mean(axis=0)
+    level = np.log(np.maximum(albedo[used] @ LUMINANCE, 1e-4)).mean() if used.any() else 0.0
+    for _ in range(rounds):
+        shading = transport.shading(solve_light(transport, photo, colours[labels], weights, prior, **settings).light)
+        for j in present:
+            pick = used & (labels == j)
+            if pick.sum() >= REGION_MIN_PIXELS:
+                colours[j] = np.maximum((shading[pick] * photo[pick]).sum(axis=0)
+                                        / np.maximum(np.square(shading[pick]).sum(axis=0), 1e-12), 1e-4)
+        if used.any():
+            colours *= np.exp(level - np.log(np.maximum(colours[labels][used] @ LUMINANCE, 1e-4)).mean())
+    return solve_light(transport, photo, colours[labels], weights, prior, **settings)
+
+
+# A region with fewer usable pixels keeps its colour (the net's mean there)
+REGION_MIN_PIXELS = 10
+
+
+def albedo_regions(photo: np.ndarray, albedo: np.ndarray, count: int, rounds: int = 20) -> np.ndarray:
+    """(P,) labels in [0, count): k-means of the pixels on the photo's chromaticity (log of each
+    channel over their mean: the same under a brighter or darker grey light) and half the log
+    luminance of the net's albedo (so a white and a black garment of one hue part), started at
+    quantiles along the features' first principal axis (deterministic)."""
+    photo = np.maximum(photo, 1e-4)
+    features = np.concatenate([np.log(photo / photo.mean(axis=1, keepdims=True)),
+                               0.5 * np.log(np.maximum(albedo.mean(axis=1, keepdims=True), 1e-4))], axis=1)
+    count = min(count, len(features))
+    if count <= 1:
+        return np.zeros(len(features), np.int64)
+    centred = features - features.mean(axis=0)
+    order = np.argsort(centred @ np.linalg.svd(centred, full_matrices=False)[2][0], kind="stable")
+    centres = features[order[((np.arange(count) + 0.5) / count * len(features)).astype(int)]]
+    for _ in range(rounds):
+        labels = np.argmin(np.square(features[:, None] - centres[None]).sum(axis=-1), axis=1)
+        centres = np.stack([features[labels == j].mean(axis=0) if (labels == j).any() else centres[j]
+                            for j in range(count)])
+    return labels
 
 
 # Active-set swaps tried before the quadratic solve falls back to scipy's NNLS

@@ -117,16 +117,31 @@ SOLVE_SAMPLES = 32
 SOLVE_CLIPPED = 0.95
 # Albedo below this (the net's, channel mean) says little about the light: left out
 SOLVE_DARK_ALBEDO = 0.03
+# The solve's albedo: the net's albedo averaged over each of this many regions of the person
+# (inverse.solve_light_by_regions: k-means on the photo's chromaticity and the net's
+# luminance), solved again with the light SOLVE_REGION_ROUNDS times; 0 regions: the net's albedo
+# itself. The net leaves part of the shading in its albedo, which the solve then explains away;
+# averaged over a garment that part mostly cancels. At the solve's pixels (`python
+# bench/light_levers.py levers data/lightlevers/S`, albedo dB at the oracle level / light
+# direction error): validation 20.09 / 32.1 deg -> 20.25 / 28.4 (6 regions, 0 rounds), 20.24 /
+# 28.6 (1 round), 20.21 / 28.7 (4); 100 training-pose scenes 19.94 / 33.0 -> 20.15 / 32.7, 20.18
+# / 30.5, 20.16 / 30.6; 3 / 12 regions (4 rounds) 20.26 / 20.08 on validation. Through the
+# pipeline (`relight eval data/evalval512 --use-gt-mask`, relit / albedo): 18.313 / 17.548 ->
+# 18.393 / 17.640 (0 rounds: relit better in 15 of 20 scenes, albedo in 19), 18.377 / 17.612 (4
+# rounds, ~0.4 s more). Test (reported, not chosen on): 23.08 -> 23.36 (0), 23.58 (1), 23.60 (4).
+SOLVE_REGIONS = 6
+SOLVE_REGION_ROUNDS = 0
 
 
 def solve_input_light(frame: Frame, net_albedo: np.ndarray, options, models: Models) -> np.ndarray:
     """The input light by inverse rendering (relightcli.render.inverse): the light transport
     of a grid of the person's pixels on the same surfaces the target shading is traced on
-    (mesh_transport), the net's albedo there as the albedo, the net's light as the prior.
+    (mesh_transport), the net's albedo there averaged over each region of the person
+    (SOLVE_REGIONS) as the albedo, the net's light as the prior.
     Pixels on the 2-px outline, clipped or with a dark albedo are left out. Returns the
     (16, 32, 3) light the albedo is divided by and the `light` layer's (light_layer);
     frame.notes["delight"] gets the solve's residual and sizes."""
-    from relightcli.render.inverse import solve_light
+    from relightcli.render.inverse import solve_light, solve_light_by_regions
 
     ensure_scenes(frame, options, models)  # built here, used by the target's shading too
     start = time.perf_counter()
@@ -135,12 +150,16 @@ def solve_input_light(frame: Frame, net_albedo: np.ndarray, options, models: Mod
     photo = frame.crop.reshape(-1, 3)[pixels].astype(np.float64)
     albedo = net_albedo.reshape(-1, 3)[pixels].astype(np.float64)
     usable = (photo.max(axis=1) < SOLVE_CLIPPED) & (albedo.mean(axis=1) >= SOLVE_DARK_ALBEDO)
-    solve = solve_light(transport, photo, albedo, usable.astype(np.float64), frame.light)
+    if SOLVE_REGIONS:
+        solve = solve_light_by_regions(transport, photo, albedo, usable.astype(np.float64), frame.light, SOLVE_REGIONS,
+                                       SOLVE_REGION_ROUNDS)
+    else:
+        solve = solve_light(transport, photo, albedo, usable.astype(np.float64), frame.light)
     light = grey_light(solve.light)
     net_level, level = (float(np.mean(x @ compose.LUMINANCE)) for x in (frame.light, light))
     frame.notes["delight"] = {
         "light": "inverse rendering" if solve.pixels else "no usable pixel: the net's light, made grey",
-        "pixels": solve.pixels, "residual": [round(r, 4) for r in solve.residual],
+        "pixels": solve.pixels, "albedo_regions": SOLVE_REGIONS, "residual": [round(r, 4) for r in solve.residual],
         "level_vs_net": round(level / net_level, 4) if net_level > 0 else None,
         "seconds": round(time.perf_counter() - start, 4)}
     return light, light_layer(light, grey_light(frame.light), transport)
