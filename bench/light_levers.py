@@ -242,6 +242,8 @@ LEVERS = {
     "  one colour, 6 regions, 2 rounds (4)": lambda z: by_regions(z, 6, rounds=2),
     "  one colour, 6 regions, 1 round": lambda z: by_regions(z, 6, rounds=1),
     "  one colour, 6 regions, 0 rounds (the net's mean per region)": lambda z: by_regions(z, 6, rounds=0),
+    "  one colour, 3 regions, 0 rounds": lambda z: by_regions(z, 3, rounds=0),
+    "  one colour, 10 regions, 0 rounds": lambda z: by_regions(z, 10, rounds=0),
     "parametric: sky lobes alone": lambda z: sun_and_sky(z, with_sun=False),
     "parametric: sky lobes + one sun texel": sun_and_sky,
     "  absolute residuals, sky alone": lambda z: sun_and_sky(z, with_sun=False, relative=False),
