@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from light_solve import light_errors  # noqa: E402
 
 from relightcli import compose  # noqa: E402
-from relightcli.render.inverse import Transport, solve_light, solve_light_by_regions  # noqa: E402
+from relightcli.render.inverse import Transport, albedo_regions, solve_light, solve_light_by_regions  # noqa: E402
 from relightcli.stages import delight  # noqa: E402
 
 LUMINANCE = compose.LUMINANCE
@@ -126,25 +126,12 @@ def sharpened(z: dict, beta: float) -> np.ndarray:
     return albedo * (np.median(z["net_albedo"][usable] @ LUMINANCE) / np.median(albedo[usable] @ LUMINANCE))
 
 
-def kmeans(x: np.ndarray, k: int, rounds: int = 20) -> np.ndarray:
-    """Labels of k clusters, started at quantiles along the first principal axis."""
-    centred = x - x.mean(axis=0)
-    order = np.argsort(centred @ np.linalg.svd(centred, full_matrices=False)[2][0])
-    centres = x[order[((np.arange(k) + 0.5) / k * len(x)).astype(int)]]
-    for _ in range(rounds):
-        labels = np.argmin(np.square(x[:, None] - centres[None]).sum(axis=-1), axis=1)
-        centres = np.stack([x[labels == j].mean(axis=0) if (labels == j).any() else centres[j] for j in range(k)])
-    return labels
-
-
 def region_gains(z: dict, k: int, rounds: int = 4) -> np.ndarray:
     """Light and a gain per region of the net's albedo solved in turn (regions: k-means over
     the photo's chromaticity and the net albedo's log luminance), the gains' log mean held at
     0: the net's albedo level kept, its regions' relative levels freed."""
-    usable, photo = z["usable"], np.maximum(z["photo"], 1e-4)
-    features = np.concatenate([np.log(photo / photo.mean(axis=1, keepdims=True)),
-                               0.5 * np.log(np.maximum(z["net_albedo"].mean(axis=1, keepdims=True), 1e-4))], axis=1)
-    labels, gains = kmeans(features, k), np.ones(k)
+    usable = z["usable"]
+    labels, gains = albedo_regions(z["photo"], z["net_albedo"], k), np.ones(k)
     for _ in range(rounds):
         light = solved(z, z["net_albedo"] * gains[labels][:, None])
         fit = (z["net_albedo"] @ LUMINANCE) * ((z["matrix"] @ light.reshape(-1, 3)) @ LUMINANCE)
