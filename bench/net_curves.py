@@ -1,5 +1,6 @@
 """Learning curves of a net over width and data size: is it at its limit, or short of
-capacity or of data? The de-lighting net (issue 47) and the geometry prior net (issue 49).
+capacity or of data? The de-lighting net (issue 47), the geometry prior net and the AO net
+(issue 49).
 
     python bench/net_curves.py train --family delight --data data/factory256 --runs data/curves \
         [--sizes small_half small small_double] [--samples 1200 2400] [--steps N] [--crop 128]
@@ -7,6 +8,7 @@ capacity or of data? The de-lighting net (issue 47) and the geometry prior net (
         [--eval data/evalval512 data/evaltrain512] [--out bench/results/delight_curves.json]
     python bench/net_curves.py train --family geometry_prior --data data/factory256 \
         --runs data/curves_geometry --samples 2400 --sizes small
+    python bench/net_curves.py train --family ao --data data/factory256 --runs data/curves_ao
 
 `train` trains one run per (width, training samples) in turn with the runtime's inputs (for
 the de-lighting net the geometry net's normals: `python -m export.factory.coarse DATA
@@ -18,7 +20,9 @@ axis.
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
 shipped net on the same sets (kept in RUNS/shipped.json by its sha256), and times the exported
-net (one run at its 256 side on 2 threads: the nets' budget is 0.3 s at 512). Choose on
+net (one run at its 256 side on 2 threads: the nets' budget is 0.3 s at 512). Scores are kept
+by the pipeline's version (`pipeline_version`: the package's sources and the models' manifest),
+so a change to the pipeline scores every run again; `--only RUN ...` scores those runs. Choose on
 validation sets only: data/evalval512 (3 HDRIs: its differences of 0.2-0.3 dB are within its
 noise) and new scenes of the training split's poses and maps (data/evaltrain512), never the
 test scenes.
@@ -27,6 +31,7 @@ test scenes.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -38,10 +43,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 CONFIGS = {"delight": ROOT / "export/train/configs/delight_small_runtime.json",
-           "geometry_prior": ROOT / "export/train/configs/geometry_prior_small.json"}
+           "geometry_prior": ROOT / "export/train/configs/geometry_prior_small.json",
+           "ao": ROOT / "export/train/configs/ao_small.json"}
 THREADS = 2
 # Each family's training length; a run of another length is named for it (the length axis)
-STEPS = {"delight": 1500, "geometry_prior": 3000}
+STEPS = {"delight": 1500, "geometry_prior": 3000, "ao": 3000}
+# Settings every run of a family takes over its config (the AO net's shipped run: a cosine schedule)
+SETTINGS = {"ao": ['lr_schedule="cosine"']}
 
 
 def run_dir(runs: Path, family: str, size: str, samples: int, steps: int) -> Path:
@@ -53,7 +61,8 @@ def train_command(family: str, data: str, out: Path, size: str, samples: int, st
     return [sys.executable, "-m", "export.train", family, "--config", str(CONFIGS[family]), "--data", data,
             "--out", str(out), "--steps", str(steps), "--threads", str(THREADS),
             "--set", f'size="{size}"', "--set", f"train_samples={samples}",
-            "--set", f"crop={'null' if crop is None else crop}"]
+            "--set", f"crop={'null' if crop is None else crop}"] + [
+            part for setting in SETTINGS.get(family, []) for part in ("--set", setting)]
 
 
 def train(args) -> None:
@@ -100,14 +109,24 @@ def net_seconds(path: Path, side: int = 256, runs: int = 5) -> float:
     return run_seconds(path, feeds, runs, THREADS, warm_up=True)[1]
 
 
+def pipeline_version() -> str:
+    """A digest of what `relight eval` runs besides the scored net: the package's sources and the
+    models' manifest (the other nets' sha256)."""
+    digest = hashlib.sha256()
+    for path in sorted((ROOT / "relightcli").rglob("*.py")) + [ROOT / "models" / "manifest.json"]:
+        digest.update(path.relative_to(ROOT).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
 def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict) -> dict:
     """The product's eval on each set of scenes with this run's net in place of the shipped
-    one, and the net's run time ("seconds"); kept in the run's pipeline.json by step and set,
-    so a set is scored once."""
+    one, and the net's run time ("seconds"); kept in the run's pipeline.json by step, pipeline
+    version and set, so a set is scored once per version."""
     step = last_record(run / "log.jsonl").get("step", 0)
     cache = run / "pipeline.json"
     kept = json.loads(cache.read_text()) if cache.is_file() else {}
-    wanted = [scenes for scenes in sets if f"{step} {scenes}" not in kept]
+    version = pipeline_version()
+    wanted = [scenes for scenes in sets if f"{step} {version} {scenes}" not in kept]
     if wanted or f"{step} seconds" not in kept:
         with tempfile.TemporaryDirectory() as tmp:
             models = Path(tmp) / "models"
@@ -117,26 +136,27 @@ def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict)
             subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
             kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
             for scenes in wanted:
-                kept[f"{step} {scenes}"] = eval_scores(models, scenes)
+                kept[f"{step} {version} {scenes}"] = eval_scores(models, scenes)
         cache.write_text(json.dumps(kept, indent=1) + "\n")
-    return {"seconds": kept[f"{step} seconds"], **{scenes: kept[f"{step} {scenes}"] for scenes in sets}}
+    return {"seconds": kept[f"{step} seconds"], **{scenes: kept[f"{step} {version} {scenes}"] for scenes in sets}}
 
 
 def shipped_scores(runs: Path, family: str, sets: list) -> dict:
     """pipeline_scores for the shipped models, kept in runs/shipped.json by the shipped net's
-    sha256 and set."""
+    sha256, the pipeline's version and set."""
     from relightcli.nets.manifest import sha256_file
 
     sha = sha256_file(ROOT / "models" / f"{family}.onnx")[:16]
+    version = pipeline_version()
     cache = runs / "shipped.json"
     kept = json.loads(cache.read_text()) if cache.is_file() else {}
     if f"{sha} seconds" not in kept:
         kept[f"{sha} seconds"] = round(net_seconds(ROOT / "models" / f"{family}.onnx"), 4)
     for scenes in sets:
-        if f"{sha} {scenes}" not in kept:
-            kept[f"{sha} {scenes}"] = eval_scores(ROOT / "models", scenes)
+        if f"{sha} {version} {scenes}" not in kept:
+            kept[f"{sha} {version} {scenes}"] = eval_scores(ROOT / "models", scenes)
     cache.write_text(json.dumps(kept, indent=1) + "\n")
-    return {"seconds": kept[f"{sha} seconds"], **{scenes: kept[f"{sha} {scenes}"] for scenes in sets}}
+    return {"seconds": kept[f"{sha} seconds"], **{scenes: kept[f"{sha} {version} {scenes}"] for scenes in sets}}
 
 
 def score(args) -> None:
@@ -146,7 +166,7 @@ def score(args) -> None:
         print(json.dumps(rows[-1]), flush=True)
     for run in sorted(Path(args.runs).iterdir()):
         config_path = run / "config.json"
-        if not config_path.is_file():
+        if not config_path.is_file() or (args.only and run.name not in args.only):
             continue
         config = json.loads(config_path.read_text())
         log = last_record(run / "log.jsonl")
@@ -160,7 +180,7 @@ def score(args) -> None:
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=2) + "\n")
     sets = args.eval or []
-    keys = ("relit", "albedo") if args.family == "delight" else ("shading", "normal_deg")
+    keys = {"delight": ("relit", "albedo"), "ao": ("shading", "relit")}.get(args.family, ("shading", "normal_deg"))
     print("| run | step | CPU-hours | net s | " + " | ".join(f"{scenes}: {' / '.join(keys)}" for scenes in sets) + " |")
     print("|---|---|---|---|" + "---|" * len(sets))
     for row in rows:
@@ -185,6 +205,7 @@ def main() -> None:
                                       help="training crop (default: 128 for delight, whole samples otherwise)")
     sub.choices["score"].add_argument("--eval", nargs="+",
                                       help="sets of eval scenes to run the product on with each net")
+    sub.choices["score"].add_argument("--only", nargs="+", help="score these runs (names) only")
     sub.choices["score"].add_argument("--out")
     args = parser.parse_args()
     if args.command == "train":
