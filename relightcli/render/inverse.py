@@ -252,8 +252,9 @@ def solve_light_by_regions(transport: Transport, photo: np.ndarray, albedo: np.n
     used = np.asarray(weights) > 0
     present = [j for j in range(regions) if (labels == j).any()]
     colours = np.full((regions, 3), 0.5)
-    for j in present:
-        colours[j] = albedo[labels == j].mean(axis=0)
+    for j in present:  # the net's mean over the region's usable pixels (all of it where too few)
+        pick = used & (labels == j)
+        colours[j] = albedo[pick if pick.sum() >= REGION_MIN_PIXELS else labels == j].mean(axis=0)
     level = np.log(np.maximum(albedo[used] @ LUMINANCE, 1e-4)).mean() if used.any() else 0.0
     for _ in range(rounds):
         shading = transport.shading(solve_light(transport, photo, colours[labels], weights, prior, **settings).light)

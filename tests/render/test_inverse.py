@@ -293,3 +293,18 @@ def test_regions_of_degenerate_inputs():
     prior = np.full((16, 32, 3), 0.7, np.float32)
     solved = solve_light_by_regions(transport, np.zeros((40, 3)), np.zeros((40, 3)), np.zeros(40), prior, 6, 1)
     assert solved.pixels == 0 and np.array_equal(solved.light, prior)
+
+
+def test_a_regions_colour_comes_from_its_usable_pixels():
+    # Half of one garment's pixels are clipped (weight 0) and the net's albedo there is wrong
+    # (10x): the region's colour is the net's mean over the usable half, so the light comes out
+    # at the true level (the mean over all of it would put it 5.5x too dark)
+    from relightcli.render.inverse import Transport, solve_light_by_regions
+
+    transport = Transport(np.full((40, 512), 1.0 / 512, np.float32), np.arange(40), (16, 32))
+    weights = np.repeat([1.0, 0.0], 20)
+    net_albedo = np.where(weights[:, None] > 0, 0.5, 5.0) * np.ones((40, 3))
+    photo = np.where(weights[:, None] > 0, 0.5, 1.0) * np.ones((40, 3))  # the true light: 1 everywhere
+    prior = np.full((16, 32, 3), 0.5, np.float32)
+    solved = solve_light_by_regions(transport, photo, net_albedo, weights, prior, 1, 0)
+    assert abs(float(transport.shading(solved.light).mean()) - 1.0) < 0.1
