@@ -272,6 +272,80 @@ def fill_uncovered(values: np.ndarray, covered: np.ndarray, wanted: np.ndarray) 
     return filled
 
 
+def fill_smooth(values: np.ndarray, covered: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """(H, W, C) values with wanted-but-uncovered pixels filled from the covered ones: within
+    FILL_NEAREST_PX of a covered pixel the nearest one's values (fill_uncovered), further in
+    smoothly (pull-push: the covered values averaged over ever coarser 2 x 2 blocks, then each
+    level's gaps filled from the next coarser one, bilinearly), the two blended over
+    FILL_BLEND_PX. Unchanged elsewhere and where nothing is covered. A hole wider than a few
+    pixels (the mesh missing between two people, behind an arm) gets no wedges of one
+    neighbour's value; a thin rim keeps its neighbour's."""
+    from scipy.ndimage import distance_transform_edt
+
+    holes = wanted & ~covered
+    if not holes.any() or not covered.any():
+        return values
+    box = bounding_box(covered | holes)
+    distance, (rows, cols) = distance_transform_edt(~covered[box], return_indices=True)
+    inner = holes[box]
+    nearest = values[box][rows[inner], cols[inner]]
+    share = np.clip((distance[inner] - FILL_NEAREST_PX) / FILL_BLEND_PX, 0.0, 1.0)[:, None]
+    out = values.copy()
+    if share.any():
+        smooth = _pull_push(values[box], covered[box])[inner]
+        nearest = (1.0 - share) * nearest + share * smooth
+    out[box][inner] = nearest.astype(values.dtype)
+    return out
+
+
+# fill_smooth: hole pixels this close to a covered one copy it; the smooth fill takes over
+# across the next FILL_BLEND_PX (validation, own mask: the smooth fill everywhere lost 0.035 dB
+# of relit against the nearest pixel's copy, a thin rim being most of the holes there)
+FILL_NEAREST_PX = 2.0
+FILL_BLEND_PX = 4.0
+
+
+def _pull_push(values: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """(H, W, C) float64: the covered pixels' values, and everywhere else a smooth fill from
+    them (pull-push over 2 x 2 blocks, bilinear push). Non-finite values count as uncovered."""
+    known = covered & np.isfinite(values).all(axis=-1)  # (a NaN would spread over every level)
+    weight = known.astype(np.float64)
+    level = np.where(known[..., None], values, 0.0).astype(np.float64)
+    pyramid = []  # (values, weights in [0, 1]) from the finest
+    while True:
+        pyramid.append((level, weight))
+        if weight.min() > 0 or max(weight.shape) == 1:  # (nothing finite: the coarsest level is 0)
+            break
+        rows, cols = -(-weight.shape[0] // 2) * 2, -(-weight.shape[1] // 2) * 2
+        padded_w = np.zeros((rows, cols))
+        padded_w[:weight.shape[0], :weight.shape[1]] = weight
+        padded_v = np.zeros((rows, cols, level.shape[-1]))
+        padded_v[:weight.shape[0], :weight.shape[1]] = level * weight[..., None]
+        total = padded_w.reshape(rows // 2, 2, cols // 2, 2).sum(axis=(1, 3))
+        summed = padded_v.reshape(rows // 2, 2, cols // 2, 2, -1).sum(axis=(1, 3))
+        level = summed / np.maximum(total, 1e-12)[..., None]
+        weight = np.minimum(total, 1.0)
+    filled = pyramid[-1][0]
+    for level, weight in reversed(pyramid[:-1]):
+        filled = level * weight[..., None] + _upsample_half(filled, weight.shape) * (1.0 - weight[..., None])
+    return filled
+
+
+def _upsample_half(image: np.ndarray, shape: tuple) -> np.ndarray:
+    """(H, W, C) bilinear from an (h, w, C) image of 2 x 2 blocks' means (block centres at
+    fine coordinates 2i + 0.5), cropped to `shape`; held beyond the edges."""
+    def axis(size, coarse):
+        at = np.clip((np.arange(size) - 0.5) / 2.0, 0.0, coarse - 1)
+        low = np.minimum(at.astype(np.int64), coarse - 1)
+        high = np.minimum(low + 1, coarse - 1)
+        return low, high, (at - low)
+
+    r0, r1, fr = axis(shape[0], image.shape[0])
+    c0, c1, fc = axis(shape[1], image.shape[1])
+    rows = image[r0] * (1.0 - fr)[:, None, None] + image[r1] * fr[:, None, None]
+    return rows[:, c0] * (1.0 - fc)[None, :, None] + rows[:, c1] * fc[None, :, None]
+
+
 def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
     """(rows, columns) slices of the smallest box holding every True pixel of an (H, W) mask,
     grown by `margin` pixels on every side within the image (empty slices for an empty mask)."""

@@ -490,6 +490,49 @@ def test_fill_uncovered_within_its_box_is_the_whole_images_fill(seed):
                                   _fill_over_the_whole_image(values, covered, wanted))
 
 
+def test_fill_smooth_fills_a_wide_hole_from_both_sides_without_wedges():
+    """A hole 40 px wide across a ramp (the mesh missing between two people): the smooth fill
+    follows the ramp (pull-push is not exact on it: within 10% of its range, under half the
+    nearest copy's mean error) where the nearest pixel's copy alone leaves two flat halves; covered
+    pixels, pixels not wanted and a NaN texel's neighbours stay put."""
+    from relightcli.compose import fill_smooth, fill_uncovered
+
+    rows, cols = np.mgrid[:64, :96]
+    values = np.stack([cols / 95.0, 1.0 - rows / 63.0], axis=-1).astype(np.float32)
+    covered = np.ones((64, 96), bool)
+    covered[8:56, 28:68] = False
+    wanted = np.ones_like(covered)
+    wanted[8:12, 28:68] = False  # a strip of the hole nobody asked for
+    values[0, 0] = np.nan  # a covered NaN texel: it does not spread
+    smooth = fill_smooth(values, covered, wanted)
+    nearest = fill_uncovered(values, covered, wanted)
+    filled = wanted & ~covered
+    truth = np.stack([cols / 95.0, 1.0 - rows / 63.0], axis=-1)
+    assert np.isfinite(smooth[filled]).all()
+    assert np.abs(smooth - truth)[filled].max() < 0.1
+    assert np.abs(smooth - truth)[filled].mean() < 0.5 * np.abs(nearest - truth)[filled].mean()
+    # across the hole's middle row the fill rises with the ramp (flat only in the rim that
+    # copies its nearest pixel): no flat wedge
+    assert (np.diff(smooth[32, 28:68, 0]) >= 0).all() and (np.diff(smooth[32, 34:62, 0]) > 0).all()
+    assert not (np.diff(nearest[32, 34:62, 0]) > 0).all()
+    untouched = ~filled
+    np.testing.assert_array_equal(np.isnan(smooth[untouched]), np.isnan(values[untouched]))
+    np.testing.assert_array_equal(smooth[untouched][1:], values[untouched][1:])
+
+
+def test_fill_smooth_on_degenerate_covers():
+    from relightcli.compose import fill_smooth
+
+    values = np.arange(12, dtype=np.float32).reshape(2, 2, 3)
+    nothing = np.zeros((2, 2), bool)
+    np.testing.assert_array_equal(fill_smooth(values, nothing, ~nothing), values)  # nothing covered
+    one = np.zeros((2, 2), bool)
+    one[1, 1] = True
+    np.testing.assert_allclose(fill_smooth(values, one, ~one), np.broadcast_to(values[1, 1], (2, 2, 3)))
+    single = np.ones((1, 1, 3), np.float32)
+    assert fill_smooth(single, np.ones((1, 1), bool), np.ones((1, 1), bool)) is single
+
+
 def test_bounding_box():
     from relightcli.compose import bounding_box
 
