@@ -306,44 +306,49 @@ FILL_BLEND_PX = 4.0
 
 
 def _pull_push(values: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """(H, W, C) float64: the covered pixels' values, and everywhere else a smooth fill from
+    """(H, W, C) float32: the covered pixels' values, and everywhere else a smooth fill from
     them (pull-push over 2 x 2 blocks, bilinear push). Non-finite values count as uncovered."""
     known = covered & np.isfinite(values).all(axis=-1)  # (a NaN would spread over every level)
-    weight = known.astype(np.float64)
-    level = np.where(known[..., None], values, 0.0).astype(np.float64)
-    pyramid = []  # (values, weights in [0, 1]) from the finest
-    while True:
-        pyramid.append((level, weight))
-        if weight.min() > 0 or max(weight.shape) == 1:  # (nothing finite: the coarsest level is 0)
-            break
-        rows, cols = -(-weight.shape[0] // 2) * 2, -(-weight.shape[1] // 2) * 2
-        padded_w = np.zeros((rows, cols))
-        padded_w[:weight.shape[0], :weight.shape[1]] = weight
-        padded_v = np.zeros((rows, cols, level.shape[-1]))
-        padded_v[:weight.shape[0], :weight.shape[1]] = level * weight[..., None]
-        total = padded_w.reshape(rows // 2, 2, cols // 2, 2).sum(axis=(1, 3))
-        summed = padded_v.reshape(rows // 2, 2, cols // 2, 2, -1).sum(axis=(1, 3))
-        level = summed / np.maximum(total, 1e-12)[..., None]
+    finest = np.where(known[..., None], values, 0.0).astype(np.float32)
+    weight, summed = known.astype(np.float32), finest
+    pyramid = []  # each coarser level's (values, weights in [0, 1])
+    while weight.min() == 0 and max(weight.shape) > 1:  # (nothing finite: the coarsest level is 0)
+        total = _block_sum(weight)
+        level = _block_sum(summed) / np.maximum(total, 1e-12)[..., None]
         weight = np.minimum(total, 1.0)
+        summed = level * weight[..., None]
+        pyramid.append((level, weight))
+    if not pyramid:
+        return finest
     filled = pyramid[-1][0]
     for level, weight in reversed(pyramid[:-1]):
         filled = level * weight[..., None] + _upsample_half(filled, weight.shape) * (1.0 - weight[..., None])
-    return filled
+    return np.where(known[..., None], finest, _upsample_half(filled, known.shape))
+
+
+def _block_sum(image: np.ndarray) -> np.ndarray:
+    """The sums of an (H, W, ...) image's 2 x 2 blocks (zeros beyond an odd edge)."""
+    if image.shape[0] % 2 or image.shape[1] % 2:
+        padded = np.zeros((image.shape[0] + image.shape[0] % 2, image.shape[1] + image.shape[1] % 2)
+                          + image.shape[2:], image.dtype)
+        padded[:image.shape[0], :image.shape[1]] = image
+        image = padded
+    return image[0::2, 0::2] + image[1::2, 0::2] + image[0::2, 1::2] + image[1::2, 1::2]
 
 
 def _upsample_half(image: np.ndarray, shape: tuple) -> np.ndarray:
-    """(H, W, C) bilinear from an (h, w, C) image of 2 x 2 blocks' means (block centres at
-    fine coordinates 2i + 0.5), cropped to `shape`; held beyond the edges."""
-    def axis(size, coarse):
-        at = np.clip((np.arange(size) - 0.5) / 2.0, 0.0, coarse - 1)
-        low = np.minimum(at.astype(np.int64), coarse - 1)
-        high = np.minimum(low + 1, coarse - 1)
-        return low, high, (at - low)
+    """(H, W, C) bilinear from an (h, w, C) image of 2 x 2 blocks' means (block i's centre at
+    fine coordinate 2i + 0.5: fine pixel 2i is 3/4 block i and 1/4 block i - 1, 2i + 1 is 3/4
+    block i and 1/4 block i + 1), cropped to `shape`; held beyond the edges."""
+    def axis(image, size):
+        padded = np.concatenate([image[:1], image, image[-1:]])
+        fine = np.empty((2 * image.shape[0],) + image.shape[1:], image.dtype)
+        fine[0::2] = 0.75 * image + 0.25 * padded[:-2]
+        fine[1::2] = 0.75 * image + 0.25 * padded[2:]
+        return fine[:size]
 
-    r0, r1, fr = axis(shape[0], image.shape[0])
-    c0, c1, fc = axis(shape[1], image.shape[1])
-    rows = image[r0] * (1.0 - fr)[:, None, None] + image[r1] * fr[:, None, None]
-    return rows[:, c0] * (1.0 - fc)[None, :, None] + rows[:, c1] * fc[None, :, None]
+    rows = axis(image, shape[0])
+    return axis(rows.swapaxes(0, 1), shape[1]).swapaxes(0, 1)
 
 
 def bounding_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, slice]:
