@@ -64,7 +64,8 @@ def stage_raytrace(frame: Frame, options, models: Models) -> None:
     people whose body fit converged (the target error is the blend's, shared by the two
     renders in proportion to their weights: blend_targets). Person pixels a mesh does not
     cover (limbs thinner than two pixels on the reconstruction; clothes and hair around the naked body; the soft edge of the
-    mask, where the smoothed mesh has shrunk) take the shading of the nearest covered pixel.
+    mask, where the smoothed mesh has shrunk; a depth step between two bodies) take the shading
+    of the nearest covered pixel within 2 px, further in a smooth fill (compose.fill_smooth).
 
     Measured (issue 18): `relight eval DATA --method raytrace-norefine [--use-gt-mask]`, relit /
     albedo / shading PSNR; the weight chosen on data/evalval512 among 0, 0.3, 0.5, 0.7 and 1
@@ -117,8 +118,8 @@ SHADING_FILTER_RADIUS = 1
 def trace_shading(frame: Frame, light, options, step: int | None = None) -> tuple[np.ndarray, dict]:
     """(shading (R, R, 3), note): the reconstruction ray-traced under `light` (an
     EnvironmentLight), blended with the fitted bodies' (body_weight) where a fit converged;
-    person pixels a mesh does not cover, the mask's soft edge included, take their nearest
-    covered pixel's shading (stage_raytrace). `--shadows half` traces every second pixel's rays
+    person pixels a mesh does not cover, the mask's soft edge included, are filled from the
+    covered ones (stage_raytrace). `--shadows half` traces every second pixel's rays
     (traced); step: another pixel step for the rays than `--shadows` gives."""
     spp, target = sampling_effort(options)
     wanted = frame.crop_mask > 0
