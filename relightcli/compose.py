@@ -310,7 +310,10 @@ def _pull_push(values: np.ndarray, covered: np.ndarray) -> np.ndarray:
     them (pull-push over 2 x 2 blocks, bilinear push). Non-finite values count as uncovered."""
     known = covered & np.isfinite(values).all(axis=-1)  # (a NaN would spread over every level)
     finest = np.where(known[..., None], values, 0.0).astype(np.float32)
-    weight, summed = known.astype(np.float32), finest
+    scale = float(np.abs(finest).max()) if known.any() else 0.0
+    if not scale > 0:
+        return finest
+    weight, summed = known.astype(np.float32), finest / np.float32(scale)  # (sums of 4 stay finite)
     pyramid = []  # each coarser level's (values, weights in [0, 1])
     while weight.min() == 0 and max(weight.shape) > 1:  # (nothing finite: the coarsest level is 0)
         total = _block_sum(weight)
@@ -323,7 +326,7 @@ def _pull_push(values: np.ndarray, covered: np.ndarray) -> np.ndarray:
     filled = pyramid[-1][0]
     for level, weight in reversed(pyramid[:-1]):
         filled = level * weight[..., None] + _upsample_half(filled, weight.shape) * (1.0 - weight[..., None])
-    return np.where(known[..., None], finest, _upsample_half(filled, known.shape))
+    return np.where(known[..., None], finest, _upsample_half(filled, known.shape) * np.float32(scale))
 
 
 def _block_sum(image: np.ndarray) -> np.ndarray:

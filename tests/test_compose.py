@@ -531,6 +531,13 @@ def test_fill_smooth_on_degenerate_covers():
     np.testing.assert_allclose(fill_smooth(values, one, ~one), np.broadcast_to(values[1, 1], (2, 2, 3)))
     single = np.ones((1, 1, 3), np.float32)
     assert fill_smooth(single, np.ones((1, 1), bool), np.ones((1, 1), bool)) is single
+    # values near float32's largest (a sun's shading in odd units) and tiny ones: finite, in range
+    for size in (3e38, 1e-38):
+        huge = np.full((16, 16, 3), size, np.float32)
+        covered = np.ones((16, 16), bool)
+        covered[4:12, 4:12] = False
+        filled = fill_smooth(huge, covered, np.ones_like(covered))
+        assert np.isfinite(filled).all() and np.allclose(filled, size, rtol=1e-5, atol=0)
 
 
 def test_bounding_box():
