@@ -541,7 +541,9 @@ def preview_sheet(tiles: list[tuple[str, np.ndarray]], height: int = 256) -> np.
         if tile.ndim == 2:
             tile = np.repeat(tile[..., None], 3, axis=2)
         width = max(1, int(round(tile.shape[1] * height / tile.shape[0])))
-        resized = cv2.resize(tile.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        # shrunk by area; enlarged (the 16 x 32 input light) bilinearly, not in blocks
+        interpolation = cv2.INTER_AREA if tile.shape[0] >= height else cv2.INTER_LINEAR
+        resized = cv2.resize(tile.astype(np.float32), (width, height), interpolation=interpolation)
         banner = np.full((24, width, 3), 255, np.uint8)  # OpenCV draws text on 8-bit images only
         cv2.putText(banner, title, (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
         columns.append(np.concatenate([banner / np.float32(255), np.clip(resized, 0.0, 1.0)], axis=0))

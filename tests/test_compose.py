@@ -220,6 +220,16 @@ def test_preview_sheet_shape():
     assert 0.0 <= sheet.min() and sheet.max() <= 1.0
 
 
+def test_preview_sheet_enlarges_a_small_tile_smoothly():
+    # the 16 x 32 input light shown at 256 rows: bilinear, not 16 rows of blocks
+    light = np.zeros((16, 32, 3), np.float32)
+    light[8:, :, :] = 1.0
+    sheet = preview_sheet([("input light", light)], height=256)
+    column = sheet[24:, 100, 0]
+    assert len(np.unique(np.round(column, 4))) > 8  # a ramp across the step, not two values
+    assert np.all(np.diff(column) >= -1e-6)
+
+
 def test_ratio_albedo_inverts_relight_where_the_shading_is_bright():
     rng = np.random.default_rng(0)
     albedo = rng.uniform(0.05, 0.95, (16, 16, 3)).astype(np.float32)

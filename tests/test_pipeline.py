@@ -728,10 +728,14 @@ def test_nets_run_at_their_training_resolution_and_come_back_at_the_working_one(
     assert frame.albedo.shape == (32, 32, 3)
 
 
-def test_the_light_layer_takes_the_prior_where_no_pixel_sees_the_light():
+def test_the_light_layer_takes_the_prior_where_no_pixel_sees_the_light(monkeypatch):
     from types import SimpleNamespace
 
+    from relightcli.stages import delight
     from relightcli.stages.delight import LAYER_SEEN_SHARE, light_layer
+
+    blur = delight.LAYER_BLUR_DEG
+    monkeypatch.setattr(delight, "LAYER_BLUR_DEG", 0.0)  # the blend alone first
 
     rng = np.random.default_rng(3)
     solved = rng.uniform(0.5, 2.0, (16, 32, 3)).astype(np.float32)
@@ -749,6 +753,32 @@ def test_the_light_layer_takes_the_prior_where_no_pixel_sees_the_light():
     np.testing.assert_allclose(got[8, :8], 0.5 * solved[8, :8] + 0.5 * prior[8, :8] * level, rtol=1e-5)
     # Nothing seen (no pixel): the solved light as it is
     np.testing.assert_array_equal(light_layer(solved, prior, SimpleNamespace(matrix=np.zeros_like(matrix))), solved)
+    # and the layer as shipped is that blend blurred on the sphere
+    monkeypatch.setattr(delight, "LAYER_BLUR_DEG", blur)
+    assert blur > 0
+    np.testing.assert_allclose(light_layer(solved, prior, SimpleNamespace(matrix=matrix)),
+                               delight.sphere_blur(got, blur), rtol=1e-6)
+
+
+def test_the_sphere_blur_keeps_a_sky_and_spreads_a_sun_around_its_own_texel():
+    from relightcli.io.envmap import texel_solid_angles
+    from relightcli.stages.delight import sphere_blur
+
+    sky = np.full((16, 32, 3), 0.7, np.float32)
+    np.testing.assert_allclose(sphere_blur(sky, 8.0), sky, rtol=1e-6)  # a constant stays put
+    sun = np.full((16, 32, 3), 1.0, np.float32)
+    sun[4, 20] = 1e6  # a sun a million times the sky
+    blurred = sphere_blur(sun, 8.0)
+    assert np.isfinite(blurred).all() and blurred.min() > 0
+    luminance = blurred[..., 1]
+    assert np.unravel_index(np.argmax(luminance), luminance.shape) == (4, 20)
+    assert luminance[4, 20] < 0.9e6 and luminance[4, 21] > 1e3  # spread to its neighbours
+    omega = texel_solid_angles(16, 32)[..., None]
+    energy = lambda light: float((light * omega).sum())  # noqa: E731
+    assert abs(energy(blurred) / energy(sun) - 1.0) < 1e-3
+    np.testing.assert_array_equal(sphere_blur(sun, 0.0), sun)  # 0: the light as it is
+    huge = np.full((16, 32, 3), 1e38, np.float32)
+    assert np.isfinite(sphere_blur(huge, 8.0)).all()
 
 
 def test_the_solved_light_is_made_grey_and_keeps_its_own_shape_and_luminance():
