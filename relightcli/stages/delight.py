@@ -180,7 +180,7 @@ def light_layer(solved: np.ndarray, prior: np.ndarray, transport) -> np.ndarray:
     bench/light_solve.py`, true mask; log-L2 / SH-2 error / correlation / direction): 20
     validation scenes at 512 1.535 / 0.788 / 0.242 / 32.1 deg -> 1.509 / 0.770 / 0.268 / 32.4
     deg; 40 training-split scenes 1.393 / 0.806 / 0.281 / 25.4 -> 1.353 / 0.768 / 0.306 / 25.0
-    (test: docs/RESULTS.md)."""
+    (test: docs/RESULTS.md). The whole is then blurred on the sphere (LAYER_BLUR_DEG)."""
     seen = np.maximum(transport.matrix, 0.0).sum(axis=0)
     if not seen.max() > 0:
         return sphere_blur(solved, LAYER_BLUR_DEG)
