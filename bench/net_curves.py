@@ -91,7 +91,24 @@ def eval_scores(models: Path, scenes: str) -> dict:
     scores = {key: round(report[key]["psnr"], 3) for key in ("relit", "albedo", "shading") if key in report}
     if report.get("normal"):
         scores["normal_deg"] = round(report["normal"]["deg"], 3)
+    # each scene's dB, for the paired comparison with the shipped net (paired_difference)
+    scores["per_scene"] = {row["scene"]: {key: round(row[key]["psnr"], 3) for key in ("relit", "shading") if row.get(key)}
+                           for row in report.get("per_scene", []) if not row.get("error")}
     return scores
+
+
+def paired_difference(run: dict, shipped: dict, key: str) -> str:
+    """'+mean (se S, better in N of M)': a run's per-scene dB of `key` against the shipped net's
+    on the scenes both scored ('-' where either score predates per-scene scores)."""
+    import numpy as np
+
+    a, b = run.get("per_scene", {}), shipped.get("per_scene", {})
+    both = sorted(scene for scene in a if scene in b and key in a[scene] and key in b[scene])
+    if len(both) < 2:
+        return "-"
+    diff = np.array([a[scene][key] - b[scene][key] for scene in both])
+    return (f"{diff.mean():+.3f} (se {diff.std(ddof=1) / np.sqrt(diff.size):.3f}, better in "
+            f"{int((diff > 0).sum())} of {diff.size})")
 
 
 def net_seconds(path: Path, side: int = 256, runs: int = 5) -> float:
@@ -188,6 +205,14 @@ def score(args) -> None:
         cells = [" / ".join(str(pipe[s].get(k, "-")) for k in keys) if s in pipe else "-" for s in sets]
         print(f"| {row['run']} | {row.get('step', '-')} | {row.get('cpu_hours', '-')} | {pipe.get('seconds', '-')} | "
               + " | ".join(cells) + " |")
+    if sets and len(rows) > 1:  # each run against the shipped net, scene by scene
+        key = "relit" if args.family == "delight" else "shading"
+        print(f"\n{key} dB against the shipped net, paired by scene:")
+        shipped = rows[0]["pipeline"]
+        for row in rows[1:]:
+            if "pipeline" in row:
+                print(f"  {row['run']}: " + "; ".join(f"{scenes} {paired_difference(row['pipeline'][scenes], shipped[scenes], key)}"
+                                                     for scenes in sets))
 
 
 def main() -> None:

@@ -1,0 +1,23 @@
+"""bench/net_curves.py's bookkeeping: scores kept by the pipeline's version, paired differences."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import net_curves  # noqa: E402
+
+
+def test_paired_difference_compares_the_scenes_both_scored():
+    run = {"per_scene": {"a": {"relit": 17.0}, "b": {"relit": 18.0}, "c": {"relit": 16.0}, "d": {"relit": 9.0}}}
+    shipped = {"per_scene": {"a": {"relit": 16.5}, "b": {"relit": 18.2}, "c": {"relit": 15.0}}}
+    # d is left out (the shipped net has no score there): +0.5, -0.2, +1.0
+    assert net_curves.paired_difference(run, shipped, "relit") == "+0.433 (se 0.348, better in 2 of 3)"
+    assert net_curves.paired_difference({}, shipped, "relit") == "-"  # a score from before per-scene ones
+    assert net_curves.paired_difference(run, shipped, "shading") == "-"
+
+
+def test_the_pipeline_version_changes_with_the_package_and_is_stable_otherwise():
+    version = net_curves.pipeline_version()
+    assert version == net_curves.pipeline_version() and len(version) == 12
