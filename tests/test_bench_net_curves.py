@@ -1,4 +1,4 @@
-"""bench/net_curves.py's bookkeeping: scores kept by the pipeline's version, paired differences."""
+"""bench/net_curves.py's bookkeeping: the pipeline's version, paired differences."""
 
 from __future__ import annotations
 
@@ -18,6 +18,6 @@ def test_paired_difference_compares_the_scenes_both_scored():
     assert net_curves.paired_difference(run, shipped, "shading") == "-"
 
 
-def test_the_pipeline_version_changes_with_the_package_and_is_stable_otherwise():
+def test_the_pipeline_version_is_a_short_stable_digest():
     version = net_curves.pipeline_version()
     assert version == net_curves.pipeline_version() and len(version) == 12
