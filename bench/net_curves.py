@@ -15,7 +15,8 @@ the de-lighting net the geometry net's normals: `python -m export.factory.coarse
 --normals-only` first; for the geometry prior the fitted bodies' maps: `... --priors`), both
 cores, checkpoints every 250 steps: rerun the same command to resume where it stopped. Runs
 train for the family's STEPS; one of another --steps is another run (SIZE_N_stepsS), the length
-axis.
+axis; one of another --crop too (SIZE_N_cropC, or SIZE_N_whole for --crop 0: whole samples, as
+the shipped de-lighting net trained).
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -48,12 +49,15 @@ CONFIGS = {"delight": ROOT / "export/train/configs/delight_small_runtime.json",
 THREADS = 2
 # Each family's training length; a run of another length is named for it (the length axis)
 STEPS = {"delight": 1500, "geometry_prior": 3000, "ao": 3000}
+# Each family's training crop (None: whole samples); a run of another crop is named for it
+CROP = {"delight": 128}
 # Settings every run of a family takes over its config (the AO net's shipped run: a cosine schedule)
 SETTINGS = {"ao": ['lr_schedule="cosine"']}
 
 
-def run_dir(runs: Path, family: str, size: str, samples: int, steps: int) -> Path:
-    return runs / (f"{size}_{samples}" + ("" if steps == STEPS[family] else f"_steps{steps}"))
+def run_dir(runs: Path, family: str, size: str, samples: int, steps: int, crop: int | None = None) -> Path:
+    return runs / (f"{size}_{samples}" + ("" if steps == STEPS[family] else f"_steps{steps}")
+                   + ("" if crop == CROP.get(family) else "_whole" if crop is None else f"_crop{crop}"))
 
 
 def train_command(family: str, data: str, out: Path, size: str, samples: int, steps: int,
@@ -68,7 +72,7 @@ def train_command(family: str, data: str, out: Path, size: str, samples: int, st
 def train(args) -> None:
     for samples in args.samples:
         for size in args.sizes:
-            out = run_dir(Path(args.runs), args.family, size, samples, args.steps)
+            out = run_dir(Path(args.runs), args.family, size, samples, args.steps, args.crop)
             print(f"{out.name}: training to step {args.steps}", flush=True)
             subprocess.run(train_command(args.family, args.data, out, size, samples, args.steps, args.crop),
                            cwd=ROOT, check=True)
@@ -227,7 +231,8 @@ def main() -> None:
     sub.choices["train"].add_argument("--samples", nargs="+", type=int, default=[1200, 2400])
     sub.choices["train"].add_argument("--steps", type=int, default=None, help="default: the family's (STEPS)")
     sub.choices["train"].add_argument("--crop", type=int, default=None,
-                                      help="training crop (default: 128 for delight, whole samples otherwise)")
+                                      help="training crop, 0: whole samples (default: the family's, CROP: 128 for "
+                                           "delight, whole samples otherwise)")
     sub.choices["score"].add_argument("--eval", nargs="+",
                                       help="sets of eval scenes to run the product on with each net")
     sub.choices["score"].add_argument("--only", nargs="+", help="score these runs (names) only")
@@ -235,8 +240,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.command == "train":
         args.steps = args.steps or STEPS[args.family]
-        if args.crop is None and args.family == "delight":
-            args.crop = 128  # the de-lighting runs' crop (issue 47's first points)
+        args.crop = CROP.get(args.family) if args.crop is None else (args.crop or None)
     train(args) if args.command == "train" else score(args)
 
 

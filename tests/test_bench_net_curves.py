@@ -21,3 +21,14 @@ def test_paired_difference_compares_the_scenes_both_scored():
 def test_the_pipeline_version_is_a_short_stable_digest():
     version = net_curves.pipeline_version()
     assert version == net_curves.pipeline_version() and len(version) == 12
+
+
+def test_runs_of_another_length_or_crop_are_named_for_it():
+    from pathlib import Path
+
+    runs = Path("runs")
+    assert net_curves.run_dir(runs, "delight", "small", 2400, 1500, 128).name == "small_2400"
+    assert net_curves.run_dir(runs, "delight", "small", 2400, 3000, 128).name == "small_2400_steps3000"
+    assert net_curves.run_dir(runs, "delight", "small", 2400, 3000, None).name == "small_2400_steps3000_whole"
+    assert net_curves.run_dir(runs, "geometry_prior", "small", 1200, 3000, None).name == "small_1200"
+    assert net_curves.run_dir(runs, "ao", "small_half", 1200, 3000, 64).name == "small_half_1200_crop64"
