@@ -256,19 +256,12 @@ def _inside_ring(inside: np.ndarray, ring: int) -> np.ndarray:
 def fill_uncovered(values: np.ndarray, covered: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     """(H, W, ...) values with the nearest covered pixel's copied into wanted-but-uncovered
     pixels (unchanged where nothing is covered)."""
-    from scipy.ndimage import distance_transform_edt
-
     holes = wanted & ~covered
     if not holes.any() or not covered.any():
         return values
-    # The transform over the box around the covered pixels and the holes only: it holds every
-    # pixel that can be nearest, so the answer is the whole image's at a fraction of its cost
-    # (a person fills about half a square crop; issue 50)
-    box = bounding_box(covered | holes)
-    inner = holes[box]
-    _, (rows, cols) = distance_transform_edt(~covered[box], return_indices=True)
+    box, inner, nearest, _ = _nearest_covered(values, covered, holes)
     filled = values.copy()
-    filled[box][inner] = values[box][rows[inner], cols[inner]]
+    filled[box][inner] = nearest
     return filled
 
 
@@ -280,22 +273,30 @@ def fill_smooth(values: np.ndarray, covered: np.ndarray, wanted: np.ndarray) -> 
     FILL_BLEND_PX. Unchanged elsewhere and where nothing is covered. A hole wider than a few
     pixels (the mesh missing between two people, behind an arm) gets no wedges of one
     neighbour's value; a thin rim keeps its neighbour's."""
-    from scipy.ndimage import distance_transform_edt
-
     holes = wanted & ~covered
     if not holes.any() or not covered.any():
         return values
-    box = bounding_box(covered | holes)
-    distance, (rows, cols) = distance_transform_edt(~covered[box], return_indices=True)
-    inner = holes[box]
-    nearest = values[box][rows[inner], cols[inner]]
-    share = np.clip((distance[inner] - FILL_NEAREST_PX) / FILL_BLEND_PX, 0.0, 1.0)[:, None]
-    out = values.copy()
+    box, inner, nearest, distance = _nearest_covered(values, covered, holes)
+    share = np.clip((distance - FILL_NEAREST_PX) / FILL_BLEND_PX, 0.0, 1.0)[:, None]
     if share.any():
         smooth = _pull_push(values[box], covered[box])[inner]
         nearest = (1.0 - share) * nearest + share * smooth
+    out = values.copy()
     out[box][inner] = nearest.astype(values.dtype)
     return out
+
+
+def _nearest_covered(values: np.ndarray, covered: np.ndarray, holes: np.ndarray):
+    """(box, the holes inside it, the nearest covered pixel's values at each hole, its distance
+    in pixels). The transform runs over the box around the covered pixels and the holes only: it
+    holds every pixel that can be nearest, so the answer is the whole image's at a fraction of
+    its cost (a person fills about half a square crop; issue 50)."""
+    from scipy.ndimage import distance_transform_edt
+
+    box = bounding_box(covered | holes)
+    inner = holes[box]
+    distance, (rows, cols) = distance_transform_edt(~covered[box], return_indices=True)
+    return box, inner, values[box][rows[inner], cols[inner]], distance[inner]
 
 
 # fill_smooth: hole pixels this close to a covered one copy it; the smooth fill takes over

@@ -250,19 +250,17 @@ def solve_light_by_regions(transport: Transport, photo: np.ndarray, albedo: np.n
     albedos), that region's colour is their mean."""
     labels = albedo_regions(photo, albedo, regions)
     used = np.asarray(weights) > 0
-    present = [j for j in range(regions) if (labels == j).any()]
+    members = {j: labels == j for j in range(regions) if (labels == j).any()}
+    picks = {j: used & member for j, member in members.items() if (used & member).sum() >= REGION_MIN_PIXELS}
     colours = np.full((regions, 3), 0.5)
-    for j in present:  # the net's mean over the region's usable pixels (all of it where too few)
-        pick = used & (labels == j)
-        colours[j] = albedo[pick if pick.sum() >= REGION_MIN_PIXELS else labels == j].mean(axis=0)
+    for j, member in members.items():  # the net's mean over the region's usable pixels (all of it where too few)
+        colours[j] = albedo[picks.get(j, member)].mean(axis=0)
     level = np.log(np.maximum(albedo[used] @ LUMINANCE, 1e-4)).mean() if used.any() else 0.0
     for _ in range(rounds):
         shading = transport.shading(solve_light(transport, photo, colours[labels], weights, prior, **settings).light)
-        for j in present:
-            pick = used & (labels == j)
-            if pick.sum() >= REGION_MIN_PIXELS:
-                colours[j] = np.maximum((shading[pick] * photo[pick]).sum(axis=0)
-                                        / np.maximum(np.square(shading[pick]).sum(axis=0), 1e-12), 1e-4)
+        for j, pick in picks.items():
+            colours[j] = np.maximum((shading[pick] * photo[pick]).sum(axis=0)
+                                    / np.maximum(np.square(shading[pick]).sum(axis=0), 1e-12), 1e-4)
         if used.any():
             colours *= np.exp(level - np.log(np.maximum(colours[labels][used] @ LUMINANCE, 1e-4)).mean())
     return solve_light(transport, photo, colours[labels], weights, prior, **settings)
