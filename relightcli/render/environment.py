@@ -364,10 +364,15 @@ def _channel_mean(radiance: np.ndarray) -> np.ndarray:
 
 
 def _top_energy_fraction(energy, share: float) -> float:
-    """Fraction of the total energy held by the brightest `share` of texels (at least one)."""
+    """Fraction of the total energy held by the brightest `share` of texels (at least one).
+    Only the lit texels are partitioned: a sun split from its sky (split_sun) is all zeros but
+    for its few texels, on which numpy's partition took 0.16 s instead of 0.01."""
     total = energy.sum()
     if total <= 0:
         return 0.0
     count = max(1, int(round(share * energy.size)))
-    top = np.partition(energy.ravel(), energy.size - count)[energy.size - count:]
+    lit = energy[energy > 0]
+    if lit.size <= count:
+        return 1.0
+    top = np.partition(lit, lit.size - count)[lit.size - count:]
     return float(top.sum() / total)

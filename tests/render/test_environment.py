@@ -169,6 +169,18 @@ def test_plan_flags():
     assert not sunny.is_sun_only and sunny.sun_fraction > 0.5
 
 
+def test_top_energy_fraction_counts_the_brightest_texels_among_zeros():
+    from relightcli.render.environment import _top_energy_fraction
+
+    energy = np.zeros((64, 128))
+    energy[3, 5:9] = [8.0, 4.0, 2.0, 1.0]   # 8 brightest texels (0.1%): four lit, four zeros
+    assert _top_energy_fraction(energy, 0.001) == 1.0
+    energy[10:20, :] = 0.01                 # 1280 dim texels: the top 8 are the four and four dim
+    assert _top_energy_fraction(energy, 0.001) == pytest.approx(15.04 / (15.0 + 12.8))
+    sun, _ = EnvironmentLight(_sun_and_sky()).sun_and_sky()
+    assert sun.sun_fraction == pytest.approx(1.0, abs=1e-3) and sun.is_sun_only
+
+
 def test_sun_and_sky_add_up_to_the_map():
     light = EnvironmentLight(_sun_and_sky())
     sun, sky = light.sun_and_sky()
