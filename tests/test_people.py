@@ -182,3 +182,19 @@ def test_a_large_photo_is_seen_shrunk_and_answered_at_full_size(tmp_path, capsys
     nets = PersonDetector(threads=2), PoseLandmarker(threads=2)
     small = [p.detection.box for p in find_people(srgb(REPO / "examples" / "skier.jpg"), *nets) if p.found][0]
     np.testing.assert_allclose([x0, y0, x1, y1], small * factor, rtol=0.05, atol=0.02 * size[0])
+
+
+def test_a_dog_standing_up_to_hug_a_woman_is_not_a_second_person(nets):
+    """The detector takes the dog's hind quarters for a face (score 0.55) and the landmark net
+    half-believes it (presence 0.84): a weak detection needs WEAK_DETECTION_PRESENCE."""
+    from relightcli.nets.pose import WEAK_DETECTION_PRESENCE, WEAK_DETECTION_SCORE
+
+    photo = REPO.parent / "shared" / "data" / "photos" / "pexels_woman_with_dog.jpg"
+    if not photo.is_file():
+        pytest.skip(f"{photo} not found")
+    people = find_people(srgb(photo), *nets)
+    found = [p for p in people if p.found]
+    assert len(found) == 1 and found[0].detection.box[0] < 200  # the woman, on the left
+    dog = [p for p in people if not p.found]
+    assert len(dog) == 1 and dog[0].detection.score < WEAK_DETECTION_SCORE
+    assert 0.5 <= dog[0].pose.presence < WEAK_DETECTION_PRESENCE

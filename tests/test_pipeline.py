@@ -323,11 +323,14 @@ class Undetected(StandInModels):
         return replace(super().landmarks(image, rect), presence=self.presence)
 
 
-def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody():
+@pytest.mark.parametrize("presence", [1.0, 0.7])
+def test_the_mask_places_the_landmarks_when_the_detector_finds_nobody(presence):
+    """The input's mask says a person is there: MediaPipe's presence 0.5 will do (its stand-in
+    detection scores 0, which from the detector would need nets.pose.WEAK_DETECTION_PRESENCE)."""
     from relightcli.stages.frame import Frame
     from relightcli.stages.people import stage_people
 
-    models = Undetected()
+    models = Undetected(presence)
     rects = models.rects
     image, mask = photo_with_person()  # the mask's box: columns [25, 50), rows [20, 80)
     frame = Frame(image=image, mask=mask, env=None)
