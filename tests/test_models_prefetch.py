@@ -67,17 +67,19 @@ def test_stopping_drops_the_sessions_not_yet_started(monkeypatch):
     assert built == ["ao", "delight"]
 
 
-def test_the_light_solves_transport_table_is_filled_ahead_only_when_the_plan_solves():
+def test_the_light_solves_and_the_tracers_tables_are_filled_ahead_only_when_the_plan_uses_them():
     from relightcli.pipeline import prepared_models
+    from relightcli.render.environment import _cosine_kernel_spectrum
     from relightcli.render.inverse import transport_table
 
     transport_table.cache_clear()
+    _cosine_kernel_spectrum.cache_clear()
     models = prepared_models(RelightOptions(outputs=("normal",)))
-    models.get("geometry_prior")  # the last of its sessions: the queue is done
-    assert transport_table.cache_info().currsize == 0
+    models._executor.shutdown(wait=True)  # all it was given: sessions, no table
+    assert transport_table.cache_info().currsize == 0 and _cosine_kernel_spectrum.cache_info().currsize == 0
     models = prepared_models(RelightOptions())
-    models._executor.shutdown(wait=True)  # sessions, then the table
-    assert transport_table.cache_info().currsize == 1
+    models._executor.shutdown(wait=True)  # sessions, then the tables
+    assert transport_table.cache_info().currsize == 1 and _cosine_kernel_spectrum.cache_info().currsize == 1
 
 
 def test_a_table_that_fails_ahead_does_not_stop_the_sessions():

@@ -315,6 +315,12 @@ def _irradiance_table(radiance, nodes, texel_rows):
     return np.fft.irfft(spectrum, n=2 * texel_rows, axis=1)
 
 
+def irradiance_kernel() -> np.ndarray:
+    """The kernel of every irradiance table (`_cosine_kernel_spectrum` on the default grid),
+    computed and kept: a process that will trace rays asks for it ahead (pipeline.prepared_models)."""
+    return _cosine_kernel_spectrum(IRRADIANCE_NODES, IRRADIANCE_TEXEL_ROWS)
+
+
 @functools.lru_cache(maxsize=4)
 def _cosine_kernel_spectrum(nodes: int, texel_rows: int) -> np.ndarray:
     """(nodes + 1, texel_rows, texel_rows + 1) complex: the conjugate spectrum along u of the
