@@ -310,7 +310,9 @@ def run_stages(image: np.ndarray, mask, env, options: RelightOptions, report: It
     # OpenBLAS's default threads, and with two people the body fits' products split across
     # them rounded differently: other bytes than the CLI's for the same photo
     blas = one_blas_thread(models)
-    side = SideLine(frame, options, models, report) if options.threads >= 2 else None
+    one_lighting = lightings is None or (isinstance(lightings, (list, tuple)) and len(lightings) == 1
+                                         and lightings[0] is env)
+    side = SideLine(frame, options, models, report, one_lighting) if options.threads >= 2 else None
     try:
         for stage in (s for s in plan.run if s not in LIGHTING_STAGES):
             if side is not None and side.takes(stage, plan):
@@ -352,7 +354,7 @@ class SideLine:
     on with the others (`--threads` 2 or more; issue 50): the AO net, the de-lighting (the
     light solve and the input shading's trace) and the face fit beside the mesh's
     reconstruction, the target's ray tracing and the refinement, which read none of their
-    results. Embree's traces, ONNX Runtime's nets and numpy's large array operations run
+    results; with one environment, the fitted faces' renders for the face refinement too. Embree's traces, ONNX Runtime's nets and numpy's large array operations run
     without the GIL, so the two lines use both cores. A side stage starts where the plan has
     it, after the calling thread's stages before it; the calling thread waits for it before the
     stage in SIDE_WAITS. Each line traces on one process meanwhile, and a render gives the same
@@ -367,10 +369,11 @@ class SideLine:
     # side stage -> the calling thread's stage that needs its results
     SIDE_WAITS = {"ao": "refine", "delight": "compose", "face": "face_refine"}
 
-    def __init__(self, frame, options: RelightOptions, models, report: ItemReport):
+    def __init__(self, frame, options: RelightOptions, models, report: ItemReport, one_lighting: bool = True):
         from concurrent.futures import ThreadPoolExecutor
 
         self.frame, self.options, self.models, self.report = frame, options, models, report
+        self.one_lighting = one_lighting  # frame.env is the only environment: render the faces ahead
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="relight-side")
         self._running: dict = {}  # side stage -> future
 
@@ -389,6 +392,11 @@ class SideLine:
         def run():
             with _timed(self.report, stage):
                 STAGES[stage](self.frame, options, self.models)
+            if stage == "face" and self.one_lighting:
+                from relightcli.stages.face import render_faces_ahead
+
+                with _timed(self.report, "face_refine"):  # its work, done ahead
+                    render_faces_ahead(self.frame, options, self.models)
 
         self._running[stage] = self._executor.submit(run)
 

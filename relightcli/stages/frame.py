@@ -61,11 +61,13 @@ class Frame:
 class FoundFace:
     """A face the face stage fitted: whose head it is ("person 0"), the fitted model
     (relightcli.geometry.face.FaceFit) and its face crop (relightcli.geometry.face.CropRect)
-    in the working crop."""
+    in the working crop; `rendered`: (the environment, the fitted head's coarse shading and face
+    pixels under it) when made ahead of the face refinement (stages.face.render_faces_ahead)."""
 
     head: str
     fit: object
     crop: object
+    rendered: tuple | None = None
 
 
 # The perception nets see the photo at most this many pixels on its long side: their inputs are

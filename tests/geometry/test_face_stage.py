@@ -115,3 +115,23 @@ def test_face_shading_at_a_finer_resolution_covers_the_same_square(fitted):
     _, fine = render_face_shading(fit, light, resolution=256, spp=4, target_error=None)
     downsampled = fine.reshape(128, 2, 128, 2).mean(axis=(1, 3))
     assert np.mean(np.abs(downsampled - coarse)) < 0.02
+
+
+def test_a_face_rendered_ahead_is_taken_only_under_its_own_environment(monkeypatch):
+    """The pipeline's side line renders the fitted faces ahead under the one environment
+    (stages.face.render_faces_ahead); under another (a turntable's next map) the face is
+    rendered again."""
+    from relightcli.stages import face as face_stage
+    from relightcli.stages.frame import FoundFace, Frame
+
+    calls = []
+    monkeypatch.setattr(face_stage, "render_face", lambda frame, face, options, models: calls.append(frame.env) or
+                        (f"render under {len(calls)}", None))
+    sky, turned = np.ones((4, 8, 3), np.float32), np.ones((4, 8, 3), np.float32)
+    frame = Frame(image=None, mask=None, env=sky)
+    face = FoundFace("person 0", fit=None, crop=None)
+    face_stage.render_faces_ahead(Frame(image=None, mask=None, env=sky, faces=[face]), None, None)
+    assert face.rendered[0] is sky and len(calls) == 1
+    assert face_stage.rendered_face(frame, face, None, None) == ("render under 1", None) and len(calls) == 1
+    frame.env = turned  # equal values, another map: rendered again
+    assert face_stage.rendered_face(frame, face, None, None) == ("render under 2", None) and calls[-1] is turned
