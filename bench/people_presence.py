@@ -1,8 +1,8 @@
 """How sure the landmark net is of the people BlazePose's detector finds (nets.pose.
-WEAK_DETECTION_SCORE, WEAK_DETECTION_PRESENCE): every detection's score and the landmark net's presence, against the true
-mask (the share of the person's mask inside it), on eval scene folders; on views of the HDRIs
-in ../shared/data/hdri (no person in them) with `hdri`; on the photos of a folder with `photos=DIR`
-(no truth: listed for a look).
+WEAK_DETECTION_SCORE, WEAK_DETECTION_PRESENCE): every detection's score and the landmark
+net's presence, against the true mask (the share of the person's mask inside it), on eval
+scene folders; on views of the HDRIs in ../shared/data/hdri (no person in them) with `hdri`;
+on the photos of a folder with `photos=DIR` (no truth: listed for a look).
 
     python bench/people_presence.py data/evalval512 data/evaltrain512 data/evalval256v7 hdri \
         photos=../shared/data/photos

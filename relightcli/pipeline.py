@@ -354,8 +354,9 @@ class SideLine:
     on with the others (`--threads` 2 or more; issue 50): the AO net, the de-lighting (the
     light solve and the input shading's trace) and the face fit beside the mesh's
     reconstruction, the target's ray tracing and the refinement, which read none of their
-    results; with one environment, the fitted faces' renders for the face refinement too. Embree's traces, ONNX Runtime's nets and numpy's large array operations run
-    without the GIL, so the two lines use both cores. A side stage starts where the plan has
+    results; with one environment, the fitted faces' renders for the face refinement too.
+    Embree's traces, ONNX Runtime's nets and numpy's large array operations run without the
+    GIL, so the two lines use both cores. A side stage starts where the plan has
     it, after the calling thread's stages before it; the calling thread waits for it before the
     stage in SIDE_WAITS. Each line traces on one process meanwhile, and a render gives the same
     bytes on one thread or two (tests/test_determinism.py).
