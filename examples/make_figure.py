@@ -27,13 +27,12 @@ ENVIRONMENTS = ("noon_grass.hdr", "kloofendal_overcast.hdr")
 
 def main() -> None:
     image = read_image(EXAMPLES / "skier.jpg").rgb
-    mask = read_image(EXAMPLES / "skier_mask.png", srgb=False).rgb[..., 0]
     options = RelightOptions(outputs=("relit",), threads=2)
     models = Models(options.threads)
     tiles = []
     for name in ENVIRONMENTS:
         env = load_envmap(EXAMPLES / name)
-        frame, _ = run_stages(image, mask, env, options, ItemReport(name), models)
+        frame, _ = run_stages(image, None, env, options, ItemReport(name), models)  # the mask it finds
         if not tiles:
             tiles += [("input", compose.to_display(frame.crop)), ("albedo", compose.to_display(frame.albedo))]
         crop_relit = compose.crop_square(frame.relit, frame.box)

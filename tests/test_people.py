@@ -198,3 +198,20 @@ def test_a_dog_standing_up_to_hug_a_woman_is_not_a_second_person(nets):
     dog = [p for p in people if not p.found]
     assert len(dog) == 1 and dog[0].detection.score < WEAK_DETECTION_SCORE
     assert 0.5 <= dog[0].pose.presence < WEAK_DETECTION_PRESENCE
+
+
+def test_the_found_mask_has_no_faint_tail_over_the_crop():
+    """A segmentation is a probability, never quite 0: below half an 8-bit step it is 0, so the
+    layers are made where the person is (its tail covered 94% of the example's crop)."""
+    from relightcli.batch import ItemReport
+    from relightcli.io.images import read_image
+    from relightcli.pipeline import RelightOptions, run_stages
+    from relightcli.stages.frame import Models
+    from relightcli.stages.people import MASK_FLOOR
+
+    image = read_image(REPO / "examples" / "skier.jpg").rgb
+    options = RelightOptions(outputs=("normal",), threads=2)
+    frame, _ = run_stages(image, None, load_envmap(HDR), options, ItemReport("skier"), Models(2))
+    assert frame.mask_predicted and frame.mask[frame.mask > 0].min() >= MASK_FLOOR
+    inside = frame.crop_mask > 0.5
+    assert (frame.crop_mask > 0).sum() < 1.5 * inside.sum()  # the edge's soft band only
