@@ -2,6 +2,7 @@
 the shipped example relit with its mask, outputs written, the process ended.
 
     python bench/whole_process.py [--resolutions 256 512 1024] [--runs 5] [--out FILE.json]
+    python bench/whole_process.py --own-mask   # the README's first command: the person found
     python bench/whole_process.py --resolutions 512 --runs 8 --against /tmp/before  # A/B
 
 `--against DIR`: another checkout (`git worktree add /tmp/before COMMIT`) timed in turn with
@@ -30,6 +31,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ["examples/skier.jpg", "--mask", "examples/skier_mask.png", "--hdr", "examples/noon_grass.hdr"]
+OWN_MASK = ["examples/skier.jpg", "--hdr", "examples/noon_grass.hdr"]
 
 
 # As an installed package runs: with its modules' bytecode (pip compiles it when it installs; a
@@ -38,8 +40,8 @@ EXAMPLE = ["examples/skier.jpg", "--mask", "examples/skier_mask.png", "--hdr", "
 CHILD_ENV = {key: value for key, value in os.environ.items() if key != "PYTHONDONTWRITEBYTECODE"}
 
 
-def one_run(resolution: int, out: Path, tree: Path = ROOT) -> dict:
-    command = [sys.executable, "-m", "relightcli", *EXAMPLE, "-o", str(out / "skier.png"),
+def one_run(resolution: int, out: Path, tree: Path = ROOT, example=EXAMPLE) -> dict:
+    command = [sys.executable, "-m", "relightcli", *example, "-o", str(out / "skier.png"),
                "--resolution", str(resolution), "--overwrite", "--json"]
     start = time.perf_counter()
     child = subprocess.Popen(command, cwd=tree, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
@@ -55,13 +57,13 @@ def one_run(resolution: int, out: Path, tree: Path = ROOT) -> dict:
             "peak_rss_gb": usage.ru_maxrss / 2**20}
 
 
-def measure(resolution: int, runs: int, trees: list[Path]) -> list[dict]:
+def measure(resolution: int, runs: int, trees: list[Path], example=EXAMPLE) -> list[dict]:
     """One row per tree; with two, their runs alternate (A B B A A B ...)."""
     records = {tree: [] for tree in trees}
     with tempfile.TemporaryDirectory() as tmp:
         for index in range(runs):
             for tree in trees if index % 2 == 0 else trees[::-1]:
-                records[tree].append(one_run(resolution, Path(tmp), tree))
+                records[tree].append(one_run(resolution, Path(tmp), tree, example))
     return [{"tree": str(tree), **summarise(resolution, records[tree])} for tree in trees]
 
 
@@ -81,12 +83,14 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--against", type=Path, help="another checkout, timed in turn with this one")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--own-mask", action="store_true", help="no --mask: the product finds the person")
     args = parser.parse_args()
+    example = OWN_MASK if args.own_mask else EXAMPLE
     trees = [ROOT] + ([args.against.resolve()] if args.against else [])
     with tempfile.TemporaryDirectory() as tmp:
         for tree in trees:
-            one_run(args.resolutions[0], Path(tmp), tree)  # writes the bytecode; not timed
-    rows = [row for resolution in args.resolutions for row in measure(resolution, args.runs, trees)]
+            one_run(args.resolutions[0], Path(tmp), tree, example)  # writes the bytecode; not timed
+    rows = [row for resolution in args.resolutions for row in measure(resolution, args.runs, trees, example)]
     for row in rows:
         stages = ", ".join(f"{k} {v:.2f}" for k, v in sorted(row["stages_median_s"].items(), key=lambda kv: -kv[1])
                            if k != "total")
