@@ -9,10 +9,12 @@ module's forward that computes the same function faster (issue 50: body_refine's
 The new graph's outputs must match the old one's within `tolerance` x the output's largest
 magnitude on person-like inputs at `side` (ONNX Runtime, both files); then the file is replaced
 and its `models/manifest.json` entry gets the new sha256 and a `reexported` record (the old
-sha256, the largest difference, both run times), its training record and metrics kept. Only
-a file whose initializers carry the parameters' names can be read back (the legacy exporter
-keeps them unless it folds the weights into new constants, as the fused AFF's split does: a
-re-exported body refinement is exported next from its checkpoint).
+sha256, the largest difference, both run times), its training record and metrics kept. The
+weights are read by name where the initializers carry the parameters' names; where the exporter
+folded each BatchNorm into the convolution before it (unnamed initializers, as in the shipped
+de-lighting net), by the order the forward runs its convolutions (`load_folded`). A graph whose
+convolutions do not line up with the module's is refused (the fused AFF's split: a re-exported
+body refinement is exported next from its checkpoint).
 """
 
 from __future__ import annotations
@@ -42,12 +44,77 @@ def net_from_onnx(path: Path) -> torch.nn.Module:
     config_type = type(next(iter(configs.values())))
     net = cls(config_type(**contract["config"]))
     state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in model.graph.initializer}
+    for name in net.state_dict():  # a BatchNorm's step count is not part of its function
+        if name.endswith(".num_batches_tracked") and name not in state:
+            state[name] = torch.tensor(0)
     missing = [name for name in net.state_dict() if name not in state]
-    if missing:  # folded into unnamed constants: a graph exported from an already fused forward
-        raise SystemExit(f"{path}: no initializer named {missing[0]!r} (and {len(missing) - 1} more): "
-                         "this file's weights cannot be read back by name; export it from its checkpoint")
+    if missing:  # folded into unnamed constants: matched by the convolutions' order
+        state = load_folded(net, model, state, path)
     net.load_state_dict({name: state[name] for name in net.state_dict()}, strict=True)
     return net.eval()
+
+
+def load_folded(net: torch.nn.Module, model, state: dict, path: Path) -> dict:
+    """`state` completed for a graph whose exporter folded each BatchNorm into the convolution
+    before it: the graph's Conv nodes, in order, are the module's Conv2d layers in the order its
+    forward runs them, less those whose results reach no output (the exporter drops them: the
+    last HRNet module's fusions into branches no head reads), each weight's shape checked; a
+    folded convolution's BatchNorm becomes an affine layer that is the identity plus the folded
+    bias (running mean 0, variance 1 - eps, weight 1), the same function in eval mode.
+    Fine-tuning such a net keeps its BatchNorms in eval mode (their statistics are gone)."""
+    convs = {name: m for name, m in net.named_modules() if isinstance(m, torch.nn.Conv2d)}
+    order: list[str] = []
+    hooks = [m.register_forward_hook(lambda *_, name=name: order.append(name)) for name, m in convs.items()]
+    feeds = person_like_inputs(net.io_contract(), 64, 64)
+    outputs = net.eval()(*(torch.from_numpy(feeds[spec.name]) for spec in net.io_contract().inputs))
+    for hook in hooks:
+        hook.remove()
+    weights = [convs[name].weight for name in convs]
+    grads = torch.autograd.grad(sum(out.sum() for out in outputs), weights, allow_unused=True)
+    live = {name for name, grad in zip(convs, grads) if grad is not None}
+    order = [name for name in order if name in live]
+    nodes = [node for node in model.graph.node if node.op_type == "Conv"]
+    if len(order) != len(nodes):
+        raise SystemExit(f"{path}: {len(nodes)} convolutions in the graph, {len(order)} in the module's forward: "
+                         "its weights cannot be read back; export it from its checkpoint")
+    norm_after = {}  # conv name -> the BatchNorm2d right after it in the same Sequential
+    for name, module in net.named_modules():
+        if isinstance(module, torch.nn.Sequential):
+            children = list(module.named_children())
+            for (a, first), (b, second) in zip(children, children[1:]):
+                if isinstance(first, torch.nn.Conv2d) and isinstance(second, torch.nn.BatchNorm2d):
+                    norm_after[f"{name}.{a}" if name else a] = f"{name}.{b}" if name else b
+    state = dict(state)
+    for name, node in zip(order, nodes):
+        weight = state[node.input[1]]
+        bias = state[node.input[2]] if len(node.input) > 2 and node.input[2] else torch.zeros(weight.shape[0])
+        if tuple(weight.shape) != tuple(convs[name].weight.shape):
+            raise SystemExit(f"{path}: the graph's convolution {node.name} {tuple(weight.shape)} does not line up "
+                             f"with {name} {tuple(convs[name].weight.shape)}; export it from its checkpoint")
+        state[f"{name}.weight"] = weight
+        norm = norm_after.get(name)
+        if norm is None:
+            if convs[name].bias is not None:
+                state[f"{name}.bias"] = bias
+            continue
+        eps = dict(net.named_modules())[norm].eps
+        state.update({f"{norm}.weight": torch.ones_like(bias), f"{norm}.bias": bias,
+                      f"{norm}.running_mean": torch.zeros_like(bias),
+                      f"{norm}.running_var": torch.full_like(bias, 1.0 - eps),
+                      f"{norm}.num_batches_tracked": torch.tensor(0)})
+    # The dropped convolutions (and their BatchNorms) keep the module's own values: no output
+    # depends on them
+    dead = {name for name in convs if name not in live}
+    dead |= {norm_after[name] for name in dead if name in norm_after}
+    own = net.state_dict()
+    for name in own:
+        if name not in state and name.rsplit(".", 1)[0] in dead:
+            state[name] = own[name]
+    missing = [name for name in own if name not in state]
+    if missing:
+        raise SystemExit(f"{path}: no initializer for {missing[0]!r} (and {len(missing) - 1} more); "
+                         "export it from its checkpoint")
+    return state
 
 
 def run_seconds(path: Path, feeds: dict, runs: int = 3, threads: int = 1, warm_up: bool = False) -> tuple[list, float]:
