@@ -16,7 +16,9 @@ the de-lighting net the geometry net's normals: `python -m export.factory.coarse
 cores, checkpoints every 250 steps: rerun the same command to resume where it stopped. Runs
 train for the family's STEPS; one of another --steps is another run (SIZE_N_stepsS), the length
 axis; one of another --crop too (SIZE_N_cropC, or SIZE_N_whole for --crop 0: whole samples, as
-the shipped de-lighting net trained).
+the shipped de-lighting net trained). `--init models/delight.onnx` starts each run from a
+shipped file's weights instead (fine-tuning: SIZE_N..._from_delight; the file's BatchNorms,
+folded by its exporter, stay in eval mode).
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -55,27 +57,34 @@ CROP = {"delight": 128}
 SETTINGS = {"ao": ['lr_schedule="cosine"']}
 
 
-def run_dir(runs: Path, family: str, size: str, samples: int, steps: int, crop: int | None = None) -> Path:
+def run_dir(runs: Path, family: str, size: str, samples: int, steps: int, crop: int | None = None,
+            init: str | None = None) -> Path:
     return runs / (f"{size}_{samples}" + ("" if steps == STEPS[family] else f"_steps{steps}")
-                   + ("" if crop == CROP.get(family) else "_whole" if crop is None else f"_crop{crop}"))
+                   + ("" if crop == CROP.get(family) else "_whole" if crop is None else f"_crop{crop}")
+                   + (f"_from_{Path(init).stem}" if init else ""))
 
 
 def train_command(family: str, data: str, out: Path, size: str, samples: int, steps: int,
-                  crop: int | None) -> list[str]:
+                  crop: int | None, init: str | None = None) -> list[str]:
     return [sys.executable, "-m", "export.train", family, "--config", str(CONFIGS[family]), "--data", data,
             "--out", str(out), "--steps", str(steps), "--threads", str(THREADS),
             "--set", f'size="{size}"', "--set", f"train_samples={samples}",
             "--set", f"crop={'null' if crop is None else crop}"] + [
-            part for setting in SETTINGS.get(family, []) for part in ("--set", setting)]
+            part for setting in SETTINGS.get(family, []) for part in ("--set", setting)] + (
+            ["--set", json_setting("init", init)] if init else [])
+
+
+def json_setting(key: str, value) -> str:
+    return f"{key}={json.dumps(value)}"
 
 
 def train(args) -> None:
     for samples in args.samples:
         for size in args.sizes:
-            out = run_dir(Path(args.runs), args.family, size, samples, args.steps, args.crop)
+            out = run_dir(Path(args.runs), args.family, size, samples, args.steps, args.crop, args.init)
             print(f"{out.name}: training to step {args.steps}", flush=True)
-            subprocess.run(train_command(args.family, args.data, out, size, samples, args.steps, args.crop),
-                           cwd=ROOT, check=True)
+            subprocess.run(train_command(args.family, args.data, out, size, samples, args.steps, args.crop,
+                                         args.init), cwd=ROOT, check=True)
 
 
 def last_record(path: Path) -> dict:
@@ -153,7 +162,7 @@ def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict)
             models = Path(tmp) / "models"
             shutil.copytree(ROOT / "models", models)
             command = train_command(family, data, run, config["size"], config["train_samples"], step,
-                                    config.get("crop")) + ["--export-to", str(models)]
+                                    config.get("crop"), config.get("init")) + ["--export-to", str(models)]
             subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
             kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
             for scenes in wanted:
@@ -230,6 +239,8 @@ def main() -> None:
     sub.choices["train"].add_argument("--sizes", nargs="+", default=["small_half", "small", "small_double"])
     sub.choices["train"].add_argument("--samples", nargs="+", type=int, default=[1200, 2400])
     sub.choices["train"].add_argument("--steps", type=int, default=None, help="default: the family's (STEPS)")
+    sub.choices["train"].add_argument("--init", help="an ONNX file of the family's net to start from "
+                                      "(fine-tuning a shipped net; the run is named _from_STEM)")
     sub.choices["train"].add_argument("--crop", type=int, default=None,
                                       help="training crop, 0: whole samples (default: the family's, CROP: 128 for "
                                            "delight, whole samples otherwise)")

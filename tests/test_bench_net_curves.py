@@ -32,3 +32,7 @@ def test_runs_of_another_length_or_crop_are_named_for_it():
     assert net_curves.run_dir(runs, "delight", "small", 2400, 3000, None).name == "small_2400_steps3000_whole"
     assert net_curves.run_dir(runs, "geometry_prior", "small", 1200, 3000, None).name == "small_1200"
     assert net_curves.run_dir(runs, "ao", "small_half", 1200, 3000, 64).name == "small_half_1200_crop64"
+    assert net_curves.run_dir(runs, "delight", "small", 2400, 1000, None, "models/delight.onnx").name == \
+        "small_2400_steps1000_whole_from_delight"
+    command = net_curves.train_command("delight", "DATA", runs / "r", "small", 2400, 1000, None, "models/delight.onnx")
+    assert command[-2:] == ["--set", 'init="models/delight.onnx"']

@@ -76,6 +76,7 @@ class TrainConfig:
     standin: dict = field(default_factory=dict)
     note: str = ""
     lr_schedule: str = "constant"     # "constant", or "cosine": lr * (1 + cos(pi step / steps)) / 2
+    init: str | None = None           # an ONNX file of this net whose weights start the run (fine-tuning)
 
     def __post_init__(self):
         if self.net not in FAMILIES:

@@ -55,6 +55,8 @@ class Trainer:
         self.rng = np.random.default_rng(config.seed)
         self.task = make_task(config)
         self.net = self.task.build_net()
+        if config.init:
+            self._start_from(Path(config.init))
         self.disc = self.task.build_discriminator()
         self.opt = torch.optim.Adam(self.net.parameters(), lr=config.lr, betas=config.betas)
         self.opt_disc = (torch.optim.Adam(self.disc.parameters(), lr=config.lr_disc, betas=config.betas)
@@ -92,9 +94,30 @@ class Trainer:
 
     # --- one step ----------------------------------------------------------------------------
 
+    def _start_from(self, path: Path) -> None:
+        """The net's weights read from a shipped ONNX file of it (export.reexport.net_from_onnx;
+        a resumed run's checkpoint then replaces them)."""
+        from export.reexport import net_from_onnx
+
+        shipped = net_from_onnx(path).state_dict()
+        own = self.net.state_dict()
+        if set(shipped) != set(own) or any(shipped[k].shape != own[k].shape for k in own):
+            raise TrainingError(f"{path} is not a {self.config.net}/{self.config.size} net: its weights do not fit")
+        self.net.load_state_dict(shipped, strict=True)
+
+    def train_mode(self) -> None:
+        """The net in training mode; a net started from an ONNX file (`init`) keeps its
+        BatchNorms in eval mode: the file folded their statistics away (their scale and shift
+        still learn)."""
+        self.net.train()
+        if self.config.init:
+            for module in self.net.modules():
+                if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                    module.eval()
+
     def train_step(self, batch: dict[str, torch.Tensor]) -> dict[str, float]:
         """One Adam step of the net (and of the discriminator); returns every loss term."""
-        self.net.train()
+        self.train_mode()
         out = self.task.forward(self.net, batch)
         terms = self.task.losses(out, batch)
         reconstruction = sum(terms.values())
@@ -179,7 +202,7 @@ class Trainer:
                 continue
             for key, value in self.task.metrics(self.predict(example), example).items():
                 totals.setdefault(key, []).append(value)
-        self.net.train()
+        self.train_mode()
         if not totals:
             return {"count": 0}
         return {"count": len(next(iter(totals.values()))), **{k: float(np.mean(v)) for k, v in totals.items()}}

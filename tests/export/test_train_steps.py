@@ -275,3 +275,28 @@ def test_the_learning_curve_widths_train(net, size, dataset, tmp_path):
     trainer = Trainer(TrainConfig(net=net, size=size, seed=0, steps=2, **OVERRIDES), dataset, tmp_path)
     trainer.run(steps=2, validate=False)
     assert trainer.step == 2
+
+
+def test_a_run_started_from_an_onnx_file_starts_at_its_function_and_keeps_its_batchnorms(dataset, tmp_path):
+    """`init`: fine-tuning a shipped net whose exporter folded its BatchNorms (no checkpoint):
+    the run starts at the file's function, and its BatchNorms stay in eval mode while it trains
+    (their scale and shift learn, their statistics stay)."""
+    from export.onnx_export import export_onnx
+
+    first = Trainer(small_config("delight"), dataset, tmp_path / "first")
+    for _ in range(3):
+        first.train_step(first.next_batch())
+    export_onnx(first.net.eval(), tmp_path / "delight.onnx")
+    tuned = Trainer(small_config("delight", init=str(tmp_path / "delight.onnx")), dataset, tmp_path / "tuned")
+    example = tuned.task.example(dataset.load("val", dataset.ids("val")[0], tuned.task.sample_keys()),
+                                 sample_rng(0, "val", dataset.ids("val")[0]))
+    for key, value in first.predict(example).items():
+        np.testing.assert_allclose(tuned.predict(example)[key], value, rtol=1e-4, atol=1e-5)
+    norms = [m for m in tuned.net.modules() if isinstance(m, nn.BatchNorm2d)]
+    before = [m.running_var.clone() for m in norms]
+    shift = [m.bias.detach().clone() for m in norms]
+    tuned.train_step(tuned.next_batch())
+    assert all(torch.equal(m.running_var, b) for m, b in zip(norms, before))
+    assert any(not torch.equal(m.bias, b) for m, b in zip(norms, shift))
+    with pytest.raises(TrainingError, match="do not fit"):
+        Trainer(small_config("ao", init=str(tmp_path / "delight.onnx")), dataset, tmp_path / "other")
