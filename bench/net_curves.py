@@ -71,11 +71,7 @@ def train_command(family: str, data: str, out: Path, size: str, samples: int, st
             "--set", f'size="{size}"', "--set", f"train_samples={samples}",
             "--set", f"crop={'null' if crop is None else crop}"] + [
             part for setting in SETTINGS.get(family, []) for part in ("--set", setting)] + (
-            ["--set", json_setting("init", init)] if init else [])
-
-
-def json_setting(key: str, value) -> str:
-    return f"{key}={json.dumps(value)}"
+            ["--set", f"init={json.dumps(init)}"] if init else [])
 
 
 def train(args) -> None:

@@ -62,7 +62,8 @@ def load_folded(net: torch.nn.Module, model, state: dict, path: Path) -> dict:
     folded convolution's BatchNorm becomes an affine layer that is the identity plus the folded
     bias (running mean 0, variance 1 - eps, weight 1), the same function in eval mode.
     Fine-tuning such a net keeps its BatchNorms in eval mode (their statistics are gone)."""
-    convs = {name: m for name, m in net.named_modules() if isinstance(m, torch.nn.Conv2d)}
+    modules = dict(net.named_modules())
+    convs = {name: m for name, m in modules.items() if isinstance(m, torch.nn.Conv2d)}
     order: list[str] = []
     hooks = [m.register_forward_hook(lambda *_, name=name: order.append(name)) for name, m in convs.items()]
     feeds = person_like_inputs(net.io_contract(), 64, 64)
@@ -78,7 +79,7 @@ def load_folded(net: torch.nn.Module, model, state: dict, path: Path) -> dict:
         raise SystemExit(f"{path}: {len(nodes)} convolutions in the graph, {len(order)} in the module's forward: "
                          "its weights cannot be read back; export it from its checkpoint")
     norm_after = {}  # conv name -> the BatchNorm2d right after it in the same Sequential
-    for name, module in net.named_modules():
+    for name, module in modules.items():
         if isinstance(module, torch.nn.Sequential):
             children = list(module.named_children())
             for (a, first), (b, second) in zip(children, children[1:]):
@@ -97,7 +98,7 @@ def load_folded(net: torch.nn.Module, model, state: dict, path: Path) -> dict:
             if convs[name].bias is not None:
                 state[f"{name}.bias"] = bias
             continue
-        eps = dict(net.named_modules())[norm].eps
+        eps = modules[norm].eps
         state.update({f"{norm}.weight": torch.ones_like(bias), f"{norm}.bias": bias,
                       f"{norm}.running_mean": torch.zeros_like(bias),
                       f"{norm}.running_var": torch.full_like(bias, 1.0 - eps),

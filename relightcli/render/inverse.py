@@ -250,8 +250,8 @@ def solve_light_by_regions(transport: Transport, photo: np.ndarray, albedo: np.n
     albedos), that region's colour is their mean."""
     labels = albedo_regions(photo, albedo, regions)
     used = np.asarray(weights) > 0
-    members = {j: labels == j for j in range(regions) if (labels == j).any()}
-    picks = {j: used & member for j, member in members.items() if (used & member).sum() >= REGION_MIN_PIXELS}
+    members = {j: member for j in range(regions) if (member := labels == j).any()}
+    picks = {j: pick for j, member in members.items() if (pick := used & member).sum() >= REGION_MIN_PIXELS}
     colours = np.full((regions, 3), 0.5)
     for j, member in members.items():  # the net's mean over the region's usable pixels (all of it where too few)
         colours[j] = albedo[picks.get(j, member)].mean(axis=0)
