@@ -36,3 +36,11 @@ def test_runs_of_another_length_or_crop_are_named_for_it():
         "small_2400_steps1000_whole_from_delight"
     command = net_curves.train_command("delight", "DATA", runs / "r", "small", 2400, 1000, None, "models/delight.onnx")
     assert command[-2:] == ["--set", 'init="models/delight.onnx"']
+    # another learning rate: its own run, and the trainer told it
+    assert net_curves.run_dir(runs, "delight", "small", 2400, 1000, None, "models/delight.onnx", 5e-5).name == \
+        "small_2400_steps1000_whole_from_delight_lr5e-05"
+    command = net_curves.train_command("delight", "DATA", runs / "r", "small", 2400, 1000, None, "models/delight.onnx", 5e-5)
+    assert command[-2:] == ["--set", "lr=5e-05"]
+    from export.train.config import merge_overrides
+
+    assert merge_overrides([command[-1]]) == {"lr": 5e-05}
