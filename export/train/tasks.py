@@ -240,7 +240,9 @@ class DelightTask(Task):
 
     Ours, optional (loss weight "irradiance"): log-L1 between the SH-9 irradiance of the
     predicted light at the true normals and the true input shading, where that shading is not
-    dark: what the runtime's ratio albedo (relightcli.compose.ratio_albedo) divides by."""
+    dark: what the runtime's ratio albedo (relightcli.compose.ratio_albedo) divides by. And
+    ("level") the log-L1 between the albedo's mean over the person (channels and pixels) and the
+    truth's: the level the runtime gives its albedo (relightcli.compose.albedo_gain)."""
 
     family = "delight"
     input_keys = ("image", "normal")
@@ -279,6 +281,10 @@ class DelightTask(Task):
             floor, bright = batch["shading_floor"], batch["bright"]
             d = (torch.log(irradiance.clamp_min(0) + floor) - torch.log(batch["shading_a"] + floor)).abs()
             terms["irradiance"] = self.w["irradiance"] * (d * bright).sum() / (3 * bright.sum()).clamp_min(1)
+        if self.w.get("level"):
+            area = 3 * m.sum(dim=(1, 2, 3)).clamp_min(1)
+            ours, true = ((a * m).sum(dim=(1, 2, 3)) / area for a in (out["albedo"], batch["albedo"]))
+            terms["level"] = self.w["level"] * (torch.log(ours.clamp_min(1e-3)) - torch.log(true.clamp_min(1e-3))).abs().mean()
         return terms
 
     def irradiance(self, light: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:

@@ -230,6 +230,24 @@ def test_delight_irradiance_loss_is_the_runtime_sh9_shading_of_the_predicted_lig
     assert "ratio_albedo_psnr" in trainer.validate("val")
 
 
+def test_delight_level_loss_is_the_log_ratio_of_the_albedo_means_over_the_person(tmp_path, dataset):
+    config = small_config("delight", loss={"l1": 500.0, "perceptual": 100.0, "light": 0.025, "level": 10.0})
+    trainer = Trainer(config, dataset, tmp_path)
+    batch = trainer.next_batch()
+    mask = batch["mask"]
+    assert mask.sum() > 0
+    out = {"albedo": batch["albedo"] * 2.0, "light": batch["light"]}  # twice the truth: one stop off
+    terms = trainer.task.losses(out, batch)
+    assert abs(float(terms["level"]) - 10.0 * np.log(2.0)) < 1e-4
+    # the level alone: the same mean over the person, other pixels elsewhere, costs nothing
+    person = (mask > 0.5).expand_as(batch["albedo"])
+    shuffled = batch["albedo"].clone()
+    shuffled[~person] = 0.9
+    terms = trainer.task.losses({"albedo": shuffled, "light": batch["light"]}, batch)
+    assert float(terms["level"]) < 1e-5
+    assert np.isfinite(trainer.train_step(batch)["level"])
+
+
 class WithPredictedNormals:
     """A dataset whose samples also hold "normal_pred": the true normals, mirrored in x."""
 
