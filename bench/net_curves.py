@@ -19,7 +19,7 @@ axis; one of another --crop too (SIZE_N_cropC, or SIZE_N_whole for --crop 0: who
 the shipped de-lighting net trained). `--init models/delight.onnx` starts each run from a
 shipped file's weights instead (fine-tuning: SIZE_N..._from_delight; the file's BatchNorms,
 folded by its exporter, stay in eval mode); `--lr` another peak learning rate than the config's
-(..._lrLR).
+(..._lrLR), `--set KEY=JSON ...` other settings of the trainer's config (..._KEYJSON).
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -59,29 +59,33 @@ SETTINGS = {"ao": ['lr_schedule="cosine"']}
 
 
 def run_dir(runs: Path, family: str, size: str, samples: int, steps: int, crop: int | None = None,
-            init: str | None = None, lr: float | None = None) -> Path:
+            init: str | None = None, lr: float | None = None, settings: tuple = ()) -> Path:
     return runs / (f"{size}_{samples}" + ("" if steps == STEPS[family] else f"_steps{steps}")
                    + ("" if crop == CROP.get(family) else "_whole" if crop is None else f"_crop{crop}")
-                   + (f"_from_{Path(init).stem}" if init else "") + (f"_lr{lr:g}" if lr else ""))
+                   + (f"_from_{Path(init).stem}" if init else "") + (f"_lr{lr:g}" if lr else "")
+                   + "".join(f"_{setting.replace('=', '')}" for setting in settings))
 
 
 def train_command(family: str, data: str, out: Path, size: str, samples: int, steps: int,
-                  crop: int | None, init: str | None = None, lr: float | None = None) -> list[str]:
+                  crop: int | None, init: str | None = None, lr: float | None = None,
+                  settings: tuple = ()) -> list[str]:
     return [sys.executable, "-m", "export.train", family, "--config", str(CONFIGS[family]), "--data", data,
             "--out", str(out), "--steps", str(steps), "--threads", str(THREADS),
             "--set", f'size="{size}"', "--set", f"train_samples={samples}",
             "--set", f"crop={'null' if crop is None else crop}"] + [
             part for setting in SETTINGS.get(family, []) for part in ("--set", setting)] + (
-            ["--set", f"init={json.dumps(init)}"] if init else []) + (["--set", f"lr={lr!r}"] if lr else [])
+            ["--set", f"init={json.dumps(init)}"] if init else []) + (["--set", f"lr={lr!r}"] if lr else []) + [
+            part for setting in settings for part in ("--set", setting)]
 
 
 def train(args) -> None:
     for samples in args.samples:
         for size in args.sizes:
-            out = run_dir(Path(args.runs), args.family, size, samples, args.steps, args.crop, args.init, args.lr)
+            out = run_dir(Path(args.runs), args.family, size, samples, args.steps, args.crop, args.init, args.lr,
+                          args.set)
             print(f"{out.name}: training to step {args.steps}", flush=True)
             subprocess.run(train_command(args.family, args.data, out, size, samples, args.steps, args.crop,
-                                         args.init, args.lr), cwd=ROOT, check=True)
+                                         args.init, args.lr, args.set), cwd=ROOT, check=True)
 
 
 def last_record(path: Path) -> dict:
@@ -158,9 +162,9 @@ def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict)
         with tempfile.TemporaryDirectory() as tmp:
             models = Path(tmp) / "models"
             shutil.copytree(ROOT / "models", models)
-            command = train_command(family, data, run, config["size"], config["train_samples"], step,
-                                    config.get("crop"), config.get("init"), config.get("lr")) + [
-                                    "--export-to", str(models)]
+            # the run's own config, whatever it was trained with (its learning rate, its loss)
+            command = [sys.executable, "-m", "export.train", family, "--config", str(run / "config.json"),
+                       "--data", data, "--out", str(run), "--steps", str(step), "--export-to", str(models)]
             subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
             kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
             for scenes in wanted:
@@ -241,6 +245,8 @@ def main() -> None:
                                       "(fine-tuning a shipped net; the run is named _from_STEM)")
     sub.choices["train"].add_argument("--lr", type=float, help="the peak learning rate, default the family's "
                                       "config's (the run is named _lrLR)")
+    sub.choices["train"].add_argument("--set", nargs="+", default=(), metavar="KEY=JSON",
+                                      help="other config settings (e.g. loss.level=100; the run is named for them)")
     sub.choices["train"].add_argument("--crop", type=int, default=None,
                                       help="training crop, 0: whole samples (default: the family's, CROP: 128 for "
                                            "delight, whole samples otherwise)")

@@ -44,3 +44,29 @@ def test_runs_of_another_length_or_crop_are_named_for_it():
     from export.train.config import merge_overrides
 
     assert merge_overrides([command[-1]]) == {"lr": 5e-05}
+    # any other setting: its own run too
+    settings = ("loss.level=100",)
+    assert net_curves.run_dir(runs, "delight", "small", 1900, 1000, None, "models/delight.onnx", None, settings).name \
+        == "small_1900_steps1000_whole_from_delight_loss.level100"
+    command = net_curves.train_command("delight", "DATA", runs / "r", "small", 1900, 1000, None, None, None, settings)
+    assert command[-2:] == ["--set", "loss.level=100"] and merge_overrides([command[-1]]) == {"loss": {"level": 100}}
+
+
+def test_a_run_is_exported_for_scoring_with_its_own_config(tmp_path, monkeypatch):
+    """Scoring resumes the run at its last step to export it: with the run's own config.json
+    (a command rebuilt from the family's config rewrote the run's learning rate and loss)."""
+    import json
+    import subprocess
+
+    run = tmp_path / "small_1900_steps1000_whole_from_delight_lr2e-05"
+    run.mkdir()
+    (run / "log.jsonl").write_text(json.dumps({"step": 1000}) + "\n")
+    commands = []
+    monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: commands.append(command))
+    monkeypatch.setattr(net_curves, "net_seconds", lambda path: 0.1)
+    monkeypatch.setattr(net_curves, "eval_scores", lambda models, scenes: {"relit": 17.0})
+    scores = net_curves.pipeline_scores(run, "delight", "DATA", ["SCENES"], {"size": "small", "lr": 2e-05})
+    assert scores == {"seconds": 0.1, "SCENES": {"relit": 17.0}}
+    [command] = commands
+    assert command[command.index("--config") + 1] == str(run / "config.json")
+    assert command[command.index("--steps") + 1] == "1000" and "--set" not in command
