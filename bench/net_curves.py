@@ -9,6 +9,7 @@ capacity or of data? The de-lighting net (issue 47), the geometry prior net and 
     python bench/net_curves.py train --family geometry_prior --data data/factory256 \
         --runs data/curves_geometry --samples 2400 --sizes small
     python bench/net_curves.py train --family ao --data data/factory256 --runs data/curves_ao
+    python bench/net_curves.py ship --family delight --data data/factory256 --runs data/curves --run RUN
 
 `train` trains one run per (width, training samples) in turn with the runtime's inputs (for
 the de-lighting net the geometry net's normals: `python -m export.factory.coarse DATA
@@ -20,6 +21,7 @@ the shipped de-lighting net trained). `--init models/delight.onnx` starts each r
 shipped file's weights instead (fine-tuning: SIZE_N..._from_delight; the file's BatchNorms,
 folded by its exporter, stay in eval mode); `--lr` another peak learning rate than the config's
 (..._lrLR), `--set KEY=JSON ...` other settings of the trainer's config (..._KEYJSON).
+`ship --run RUN` exports a scored run's net into models/ (manifest entry with its scores).
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -230,10 +232,34 @@ def score(args) -> None:
                                                      for scenes in sets))
 
 
+def ship(args) -> None:
+    """Export a run's net into models/ (its manifest entry: export.train's, which keeps the
+    record of a file it was fine-tuned from) with the product's scores of it on the validation
+    sets (`score --eval` first) as the entry's `metrics.pipeline`."""
+    run = Path(args.runs) / args.run
+    step = last_record(run / "log.jsonl").get("step", 0)
+    version = pipeline_version()
+    kept = json.loads((run / "pipeline.json").read_text()) if (run / "pipeline.json").is_file() else {}
+    scores = {key.split(" ", 2)[2]: {k: v for k, v in value.items() if k != "per_scene"}
+              for key, value in kept.items() if key.startswith(f"{step} {version} ")}
+    if not scores:
+        raise SystemExit(f"{run.name} has no scores at step {step} with today's pipeline: run `score --eval` first")
+    subprocess.run([sys.executable, "-m", "export.train", args.family, "--config", str(run / "config.json"),
+                    "--data", args.data, "--out", str(run), "--steps", str(step), "--export-to", str(ROOT / "models")],
+                   cwd=ROOT, check=True)
+    from export.manifest import update_manifest
+
+    entry = json.loads((ROOT / "models" / "manifest.json").read_text())["models"][args.family]
+    entry["metrics"]["pipeline"] = scores
+    entry["training"]["run_dir"] = str(run.relative_to(ROOT) if run.is_relative_to(ROOT) else run)
+    update_manifest(ROOT / "models", args.family, entry)
+    print(json.dumps(entry["metrics"], indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("train", "score"):
+    for name in ("train", "score", "ship"):
         command = sub.add_parser(name)
         command.add_argument("--family", choices=sorted(CONFIGS), default="delight")
         command.add_argument("--data", required=True)
@@ -254,11 +280,12 @@ def main() -> None:
                                       help="sets of eval scenes to run the product on with each net")
     sub.choices["score"].add_argument("--only", nargs="+", help="score these runs (names) only")
     sub.choices["score"].add_argument("--out")
+    sub.choices["ship"].add_argument("--run", required=True, help="the run (a name in --runs) to ship")
     args = parser.parse_args()
     if args.command == "train":
         args.steps = args.steps or STEPS[args.family]
         args.crop = CROP.get(args.family) if args.crop is None else (args.crop or None)
-    train(args) if args.command == "train" else score(args)
+    {"train": train, "score": score, "ship": ship}[args.command](args)
 
 
 if __name__ == "__main__":

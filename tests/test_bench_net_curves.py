@@ -70,3 +70,34 @@ def test_a_run_is_exported_for_scoring_with_its_own_config(tmp_path, monkeypatch
     [command] = commands
     assert command[command.index("--config") + 1] == str(run / "config.json")
     assert command[command.index("--steps") + 1] == "1000" and "--set" not in command
+
+
+def test_ship_records_the_runs_scores_in_its_manifest_entry(tmp_path, monkeypatch):
+    import json
+    import subprocess
+    from argparse import Namespace
+
+    import pytest
+
+    (tmp_path / "models").mkdir()
+    entry = {"sha256": "x", "metrics": {"split": "val", "count": 0}, "training": {"run_dir": "elsewhere"}}
+    (tmp_path / "models" / "manifest.json").write_text(json.dumps({"version": 1, "models": {"delight": entry}}))
+    monkeypatch.setattr(net_curves, "ROOT", tmp_path)
+    run = tmp_path / "runs" / "r"
+    run.mkdir(parents=True)
+    (run / "log.jsonl").write_text(json.dumps({"step": 1000}) + "\n")
+    args = Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r")
+    commands = []
+    monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: commands.append(command))
+    with pytest.raises(SystemExit, match="score --eval"):  # not scored yet
+        net_curves.ship(args)
+    version = net_curves.pipeline_version()
+    (run / "pipeline.json").write_text(json.dumps({
+        "1000 seconds": 0.03, f"1000 {version} SETS": {"relit": 17.8, "per_scene": {"a": {"relit": 17.8}}},
+        f"900 {version} SETS": {"relit": 1.0}, "1000 oldversion SETS": {"relit": 2.0}}))
+    net_curves.ship(args)
+    [command] = commands
+    assert command[command.index("--export-to") + 1] == str(tmp_path / "models")
+    shipped = json.loads((tmp_path / "models" / "manifest.json").read_text())["models"]["delight"]
+    assert shipped["metrics"] == {"split": "val", "count": 0, "pipeline": {"SETS": {"relit": 17.8}}}
+    assert shipped["training"]["run_dir"] == "runs/r"

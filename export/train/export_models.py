@@ -42,20 +42,39 @@ def _samples_used(trainer) -> dict:
     return {split: len(dataset.ids(split)) for split in dataset.split_names}
 
 
+def _started_from(config, models_dir: Path) -> dict | None:
+    """A fine-tuned net's origin: the record of the file it started from (config.init), taken
+    from `models_dir`'s manifest entry when that entry describes the same file (its sha256)."""
+    import json
+
+    from relightcli.nets.manifest import sha256_file
+
+    path = models_dir / "manifest.json"
+    if not config.init or not Path(config.init).is_file() or not path.is_file():
+        return None
+    entry = json.loads(path.read_text())["models"].get(config.net, {})
+    if entry.get("sha256") != sha256_file(config.init):
+        return {"sha256": sha256_file(config.init), "file": str(config.init)}
+    return {key: entry[key] for key in ("sha256", "training", "training_data", "metrics") if key in entry}
+
+
 def export_trained(trainer, models_dir: str | Path, card: dict, run: dict) -> dict:
     """Export `trainer.net` to `<models_dir>/<family>.onnx`, check ONNX Runtime against torch,
     and insert its entry in `<models_dir>/manifest.json`. `run` is `Trainer.run`'s result.
-    Returns the entry."""
+    A net fine-tuned from a shipped file (config.init) keeps that file's record
+    (`fine_tuned_from`). Returns the entry."""
     config = trainer.config
     net = trainer.net.eval()
     multiple = net.io_contract().multiple
     size = max(multiple, int(math.ceil(config.export_size / multiple)) * multiple)
     path = Path(models_dir) / f"{config.net}.onnx"
+    origin = _started_from(config, Path(models_dir))  # read before the export replaces the file
     extra = _json_safe({
         "training": {"config": config.to_dict(), "step": run["step"], "elapsed_s": round(run["elapsed_s"], 1),
                      "stopped_by": run["stopped_by"], "run_dir": str(trainer.out)},
         "training_data": {**card_summary(card), "samples_used": _samples_used(trainer)},
         "metrics": {"split": "val", **run["metrics"]},
+        **({"fine_tuned_from": origin} if origin else {}),
     })
     entry = export_onnx(net, path, height=size, width=size, extra=extra)
     feeds = person_like_inputs(net.io_contract(), size, size, seed=1)

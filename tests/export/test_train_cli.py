@@ -88,3 +88,20 @@ def test_typo_in_an_override_exits_2(data_dir, tmp_path, capsys):
     code = main(["ao", "--data", str(data_dir), "--out", str(tmp_path), "--set", "bach_size=2"])
     assert code == 2
     assert "bach_size" in capsys.readouterr().err
+
+
+def test_a_net_fine_tuned_from_a_shipped_file_keeps_its_record(all_nets, data_dir, tmp_path):
+    """`init` = a models folder's file: the export into that folder records what it replaced."""
+    import shutil
+
+    _, _, models = all_nets
+    folder = tmp_path / "models"
+    shutil.copytree(models, folder)
+    before = json.loads((folder / "manifest.json").read_text())["models"]["ao"]
+    code = main(["ao", "--data", str(data_dir), "--out", str(tmp_path / "run"), "--export-to", str(folder),
+                 *TINY, "--set", f'init="{folder / "ao.onnx"}"'])
+    assert code == 0
+    after = json.loads((folder / "manifest.json").read_text())["models"]["ao"]
+    assert after["sha256"] != before["sha256"]
+    assert after["fine_tuned_from"] == {key: before[key] for key in ("sha256", "training", "training_data", "metrics")}
+    assert after["training"]["config"]["init"] == str(folder / "ao.onnx")
