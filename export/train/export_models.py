@@ -37,9 +37,11 @@ def card_summary(card: dict) -> dict:
 
 def _samples_used(trainer) -> dict:
     """Samples per split the trainer actually saw (the card's counts describe the generation
-    run that wrote it, which may have been stopped or resumed since)."""
+    run that wrote it, which may have been stopped or resumed since): its training samples
+    (config train_samples of them), each other split's count."""
     dataset = trainer.dataset
-    return {split: len(dataset.ids(split)) for split in dataset.split_names}
+    return {split: len(trainer.train_ids) if split == "train" else len(dataset.ids(split))
+            for split in dataset.split_names}
 
 
 def _started_from(config, models_dir: Path) -> dict | None:

@@ -99,9 +99,11 @@ def test_a_net_fine_tuned_from_a_shipped_file_keeps_its_record(all_nets, data_di
     shutil.copytree(models, folder)
     before = json.loads((folder / "manifest.json").read_text())["models"]["ao"]
     code = main(["ao", "--data", str(data_dir), "--out", str(tmp_path / "run"), "--export-to", str(folder),
-                 *TINY, "--set", f'init="{folder / "ao.onnx"}"'])
+                 *TINY, "--set", f'init="{folder / "ao.onnx"}"', "--set", "train_samples=2"])
     assert code == 0
     after = json.loads((folder / "manifest.json").read_text())["models"]["ao"]
     assert after["sha256"] != before["sha256"]
     assert after["fine_tuned_from"] == {key: before[key] for key in ("sha256", "training", "training_data", "metrics")}
     assert after["training"]["config"]["init"] == str(folder / "ao.onnx")
+    # the training samples it saw: 2 of the 3 (train_samples)
+    assert after["training_data"]["samples_used"] == {"train": 2, "val": 1, "test": 1}
