@@ -65,7 +65,13 @@ def run_dir(runs: Path, family: str, size: str, samples: int, steps: int, crop: 
     return runs / (f"{size}_{samples}" + ("" if steps == STEPS[family] else f"_steps{steps}")
                    + ("" if crop == CROP.get(family) else "_whole" if crop is None else f"_crop{crop}")
                    + (f"_from_{Path(init).stem}" if init else "") + (f"_lr{lr:g}" if lr else "")
-                   + "".join(f"_{setting.replace('=', '')}" for setting in settings))
+                   + "".join(f"_{setting_name(setting)}" for setting in settings))
+
+
+def setting_name(setting: str) -> str:
+    """A run name's part for a `--set KEY=JSON`: KEYJSON, or KEY and a digest of a long value."""
+    key, _, value = setting.partition("=")
+    return key + (value if len(value) <= 16 else hashlib.sha256(value.encode()).hexdigest()[:6])
 
 
 def train_command(family: str, data: str, out: Path, size: str, samples: int, steps: int,

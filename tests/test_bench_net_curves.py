@@ -50,6 +50,9 @@ def test_runs_of_another_length_or_crop_are_named_for_it():
         == "small_1900_steps1000_whole_from_delight_loss.level100"
     command = net_curves.train_command("delight", "DATA", runs / "r", "small", 1900, 1000, None, None, None, settings)
     assert command[-2:] == ["--set", "loss.level=100"] and merge_overrides([command[-1]]) == {"loss": {"level": 100}}
+    # a long value (a list of lights held out) is named by a digest
+    assert net_curves.setting_name('exclude_lights=["a_1k.hdr", "b_1k.hdr"]') == "exclude_lights" + \
+        __import__("hashlib").sha256(b'["a_1k.hdr", "b_1k.hdr"]').hexdigest()[:6]
 
 
 def test_a_run_is_exported_for_scoring_with_its_own_config(tmp_path, monkeypatch):

@@ -78,6 +78,9 @@ class TrainConfig:
     note: str = ""
     lr_schedule: str = "constant"     # "constant", or "cosine": lr * (1 + cos(pi step / steps)) / 2
     init: str | None = None           # an ONNX file of this net whose weights start the run (fine-tuning)
+    # input lights (each sample's spec.lighting_a.name: an HDRI's file name, "sky") whose samples
+    # are left out of training: scenes lit by them then validate on maps the run never saw
+    exclude_lights: tuple = ()
 
     def __post_init__(self):
         if self.net not in FAMILIES:
@@ -88,6 +91,9 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or value < (0 if name == "steps" else 1):
                 raise ConfigError(f"{name} must be a positive integer, got {value!r}")
+        if isinstance(self.exclude_lights, str) or not all(isinstance(n, str) for n in self.exclude_lights):
+            raise ConfigError(f"exclude_lights must be a list of light names, got {self.exclude_lights!r}")
+        object.__setattr__(self, "exclude_lights", tuple(self.exclude_lights))
         if not (self.lr > 0 and self.lr_disc > 0):
             raise ConfigError(f"learning rates must be positive, got lr={self.lr}, lr_disc={self.lr_disc}")
         if self.train_samples is not None and not (isinstance(self.train_samples, int) and self.train_samples > 0):
@@ -121,6 +127,7 @@ class TrainConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["betas"] = list(self.betas)
+        d["exclude_lights"] = list(self.exclude_lights)
         return d
 
     def with_overrides(self, overrides: dict) -> "TrainConfig":

@@ -41,6 +41,11 @@ def _atomic_torch_save(obj, path: Path) -> None:
     tmp.replace(path)
 
 
+def input_light(dataset, sample_id: str) -> str | None:
+    """The name of a training sample's input light (its spec's lighting_a), None if unrecorded."""
+    return dataset.meta("train", sample_id).get("spec", {}).get("lighting_a", {}).get("name")
+
+
 class Trainer:
     """Trains `config.net` on `dataset` (the export.factory.dataset interface), writing to `out`."""
 
@@ -63,7 +68,9 @@ class Trainer:
                          if self.disc is not None else None)
         self.step = 0
         self.elapsed_s = 0.0
-        self.train_ids = list(dataset.ids("train"))[:config.train_samples]
+        self.train_ids = [i for i in dataset.ids("train") if input_light(dataset, i) not in config.exclude_lights] \
+            if config.exclude_lights else list(dataset.ids("train"))
+        self.train_ids = self.train_ids[:config.train_samples]
         if not self.train_ids:
             raise TrainingError("the dataset has no training samples; generate data first (export.factory)")
         checkpoint = self.out / CHECKPOINT_NAME

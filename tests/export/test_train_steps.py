@@ -318,3 +318,31 @@ def test_a_run_started_from_an_onnx_file_starts_at_its_function_and_keeps_its_ba
     assert any(not torch.equal(m.bias, b) for m, b in zip(norms, shift))
     with pytest.raises(TrainingError, match="do not fit"):
         Trainer(small_config("ao", init=str(tmp_path / "delight.onnx")), dataset, tmp_path / "other")
+
+
+class WithInputLights:
+    """A dataset whose training samples record an input light: "a.hdr" for every other one."""
+
+    def __init__(self, data):
+        self.data, self.card, self.split_names = data, data.card, data.split_names
+        self.load = data.load
+
+    def ids(self, split):
+        return self.data.ids(split)
+
+    def meta(self, split, sample_id):
+        name = "a.hdr" if self.data.ids(split).index(sample_id) % 2 == 0 else "sky"
+        return {"spec": {"lighting_a": {"name": name}}}
+
+
+def test_samples_lit_by_excluded_lights_are_left_out_of_training(tmp_path, dataset):
+    lit = WithInputLights(dataset)
+    ids = lit.ids("train")
+    trainer = Trainer(small_config("ao", exclude_lights=["a.hdr"]), lit, tmp_path / "a")
+    assert trainer.train_ids == ids[1::2] and trainer.config.to_dict()["exclude_lights"] == ["a.hdr"]
+    # train_samples counts what is left
+    trainer = Trainer(small_config("ao", exclude_lights=["a.hdr"], train_samples=1), lit, tmp_path / "b")
+    assert trainer.train_ids == ids[1:2]
+    assert Trainer(small_config("ao"), lit, tmp_path / "c").train_ids == ids
+    with pytest.raises(ConfigError, match="exclude_lights"):
+        small_config("ao", exclude_lights="a.hdr")
