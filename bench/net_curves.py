@@ -86,6 +86,13 @@ def train_command(family: str, data: str, out: Path, size: str, samples: int, st
             part for setting in settings for part in ("--set", setting)]
 
 
+def export_command(family: str, run: Path, data: str, step: int, models: Path) -> list[str]:
+    """export.train resuming a run at its last step to export its net into `models`, with the
+    run's own config.json (its learning rate, its loss, whatever it was trained with)."""
+    return [sys.executable, "-m", "export.train", family, "--config", str(run / "config.json"), "--data", data,
+            "--out", str(run), "--steps", str(step), "--export-to", str(models)]
+
+
 def train(args) -> None:
     for samples in args.samples:
         for size in args.sizes:
@@ -170,10 +177,7 @@ def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict)
         with tempfile.TemporaryDirectory() as tmp:
             models = Path(tmp) / "models"
             shutil.copytree(ROOT / "models", models)
-            # the run's own config, whatever it was trained with (its learning rate, its loss)
-            command = [sys.executable, "-m", "export.train", family, "--config", str(run / "config.json"),
-                       "--data", data, "--out", str(run), "--steps", str(step), "--export-to", str(models)]
-            subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
+            subprocess.run(export_command(family, run, data, step, models), cwd=ROOT, check=True, capture_output=True)
             kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
             for scenes in wanted:
                 kept[f"{step} {version} {scenes}"] = eval_scores(models, scenes)
@@ -250,9 +254,7 @@ def ship(args) -> None:
               for key, value in kept.items() if key.startswith(f"{step} {version} ")}
     if not scores:
         raise SystemExit(f"{run.name} has no scores at step {step} with today's pipeline: run `score --eval` first")
-    subprocess.run([sys.executable, "-m", "export.train", args.family, "--config", str(run / "config.json"),
-                    "--data", args.data, "--out", str(run), "--steps", str(step), "--export-to", str(ROOT / "models")],
-                   cwd=ROOT, check=True)
+    subprocess.run(export_command(args.family, run, args.data, step, ROOT / "models"), cwd=ROOT, check=True)
     from export.manifest import update_manifest
 
     entry = json.loads((ROOT / "models" / "manifest.json").read_text())["models"][args.family]

@@ -55,8 +55,9 @@ def _started_from(config, models_dir: Path) -> dict | None:
     if not config.init or not Path(config.init).is_file() or not path.is_file():
         return None
     entry = json.loads(path.read_text())["models"].get(config.net, {})
-    if entry.get("sha256") != sha256_file(config.init):
-        return {"sha256": sha256_file(config.init), "file": str(config.init)}
+    sha256 = sha256_file(config.init)
+    if entry.get("sha256") != sha256:
+        return {"sha256": sha256, "file": str(config.init)}
     return {key: entry[key] for key in ("sha256", "training", "training_data", "metrics") if key in entry}
 
 

@@ -68,9 +68,10 @@ class Trainer:
                          if self.disc is not None else None)
         self.step = 0
         self.elapsed_s = 0.0
-        self.train_ids = [i for i in dataset.ids("train") if input_light(dataset, i) not in config.exclude_lights] \
-            if config.exclude_lights else list(dataset.ids("train"))
-        self.train_ids = self.train_ids[:config.train_samples]
+        ids = list(dataset.ids("train"))
+        if config.exclude_lights:
+            ids = [i for i in ids if input_light(dataset, i) not in config.exclude_lights]
+        self.train_ids = ids[:config.train_samples]
         if not self.train_ids:
             raise TrainingError("the dataset has no training samples; generate data first (export.factory)")
         checkpoint = self.out / CHECKPOINT_NAME
