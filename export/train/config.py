@@ -29,9 +29,9 @@ PAPER_LOSS = {
     "face_refine": {"l1": 5.0, "adversarial": 1.0},
 }
 # Terms of our own, off unless a config weights them: the delight net's SH-9 irradiance of its
-# light against the true input shading, and its albedo's level over the person
-# (export.train.tasks.DelightTask)
-EXTRA_LOSS = {"delight": ("irradiance", "level")}
+# light against the true input shading, its albedo's level over the person, and its albedo at
+# the true level (export.train.tasks.DelightTask)
+EXTRA_LOSS = {"delight": ("irradiance", "level", "shape")}
 DEFAULT_STANDIN = {
     "blur_sigma": 2.0,       # px: the smoothed reconstructed mesh loses fine shading detail
     "noise": 0.05,           # relative Monte Carlo noise of the ray tracer

@@ -242,7 +242,9 @@ class DelightTask(Task):
     predicted light at the true normals and the true input shading, where that shading is not
     dark: what the runtime's ratio albedo (relightcli.compose.ratio_albedo) divides by. And
     ("level") the log-L1 between the albedo's mean over the person (channels and pixels) and the
-    truth's: the level the runtime gives its albedo (relightcli.compose.albedo_gain)."""
+    truth's: the level the runtime gives its albedo (relightcli.compose.albedo_gain). And
+    ("shape") the L1 of the albedo brought to the truth's mean over the person by one gain per
+    sample: it does not change when the albedo's level does (a level the photo cannot tell)."""
 
     family = "delight"
     input_keys = ("image", "normal")
@@ -281,10 +283,14 @@ class DelightTask(Task):
             floor, bright = batch["shading_floor"], batch["bright"]
             d = (torch.log(irradiance.clamp_min(0) + floor) - torch.log(batch["shading_a"] + floor)).abs()
             terms["irradiance"] = self.w["irradiance"] * (d * bright).sum() / (3 * bright.sum()).clamp_min(1)
-        if self.w.get("level"):
+        if self.w.get("level") or self.w.get("shape"):
             area = 3 * m.sum(dim=(1, 2, 3)).clamp_min(1)
             ours, true = ((a * m).sum(dim=(1, 2, 3)) / area for a in (out["albedo"], batch["albedo"]))
+        if self.w.get("level"):
             terms["level"] = self.w["level"] * (torch.log(ours.clamp_min(1e-3)) - torch.log(true.clamp_min(1e-3))).abs().mean()
+        if self.w.get("shape"):
+            gain = (true / ours.clamp_min(1e-3)).view(-1, 1, 1, 1)
+            terms["shape"] = self.w["shape"] * masked_l1(out["albedo"] * gain, batch["albedo"], m)
         return terms
 
     def irradiance(self, light: torch.Tensor, basis: torch.Tensor) -> torch.Tensor:

@@ -346,3 +346,24 @@ def test_samples_lit_by_excluded_lights_are_left_out_of_training(tmp_path, datas
     assert Trainer(small_config("ao"), lit, tmp_path / "c").train_ids == ids
     with pytest.raises(ConfigError, match="exclude_lights"):
         small_config("ao", exclude_lights="a.hdr")
+
+
+def test_delight_shape_loss_leaves_out_the_level_and_gives_it_no_gradient(tmp_path, dataset):
+    config = small_config("delight", loss={"l1": 500.0, "perceptual": 100.0, "light": 0.025, "shape": 10.0})
+    trainer = Trainer(config, dataset, tmp_path)
+    batch = trainer.next_batch()
+    mask = batch["mask"]
+    # twice the truth: one stop off and the right shape, no cost
+    terms = trainer.task.losses({"albedo": batch["albedo"] * 2.0, "light": batch["light"]}, batch)
+    assert float(terms["shape"]) < 1e-5
+    # a wrong shape at the right level costs its L1 at that level
+    noisy = batch["albedo"] * (1.0 + 0.2 * torch.sign(torch.randn_like(batch["albedo"])))
+    noisy.requires_grad_(True)
+    terms = trainer.task.losses({"albedo": noisy, "light": batch["light"]}, batch)
+    assert float(terms["shape"]) > 0.01
+    # its gradient does not move the level: summed over the person it is nearly nil
+    terms["shape"].backward()
+    person = (mask > 0.5).expand_as(noisy)
+    along_level = float((noisy.grad * noisy.detach())[person].sum())
+    assert abs(along_level) < 1e-4 * float((noisy.grad.abs() * noisy.detach().abs())[person].sum())
+    assert np.isfinite(trainer.train_step(batch)["shape"])
