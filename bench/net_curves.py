@@ -123,12 +123,25 @@ def eval_scores(models: Path, scenes: str) -> dict:
     # each scene's dB, for the paired comparison with the shipped net (paired_difference)
     scores["per_scene"] = {row["scene"]: {key: round(row[key]["psnr"], 3) for key in ("relit", "shading") if row.get(key)}
                            for row in report.get("per_scene", []) if not row.get("error")}
+    return with_people(scores, scenes)
+
+
+def with_people(scores: dict, scenes: str) -> dict:
+    """Each scene's score marked with whose scene it is (the factory's person seed, from the
+    scene's scene.json), for paired_difference; scores kept from before it are marked too."""
+    for scene, row in scores.get("per_scene", {}).items():
+        spec = Path(scenes) / scene / "scene.json"
+        if "person" not in row and spec.is_file():
+            row["person"] = json.loads(spec.read_text()).get("spec", {}).get("person_seed")
     return scores
 
 
 def paired_difference(run: dict, shipped: dict, key: str) -> str:
-    """'+mean (se S, better in N of M)': a run's per-scene dB of `key` against the shipped net's
-    on the scenes both scored ('-' where either score predates per-scene scores)."""
+    """'+mean (se S over P people, better in N of M)': a run's per-scene dB of `key` against the
+    shipped net's on the scenes both scored ('-' where either score predates per-scene scores).
+    The factory renders each person several times (its samples_per_person), and one person's
+    scenes rise and fall together: the standard error is that of the people's means (a scene
+    is its own person where its score does not say)."""
     import numpy as np
 
     a, b = run.get("per_scene", {}), shipped.get("per_scene", {})
@@ -136,7 +149,12 @@ def paired_difference(run: dict, shipped: dict, key: str) -> str:
     if len(both) < 2:
         return "-"
     diff = np.array([a[scene][key] - b[scene][key] for scene in both])
-    return (f"{diff.mean():+.3f} (se {diff.std(ddof=1) / np.sqrt(diff.size):.3f}, better in "
+    people: dict = {}
+    for scene, d in zip(both, diff):
+        people.setdefault(a[scene].get("person", scene), []).append(d)
+    means = np.array([np.mean(ds) for ds in people.values()])
+    se = means.std(ddof=1) / np.sqrt(means.size) if means.size > 1 else float("nan")
+    return (f"{diff.mean():+.3f} (se {se:.3f} over {means.size} people, better in "
             f"{int((diff > 0).sum())} of {diff.size})")
 
 
@@ -238,8 +256,9 @@ def score(args) -> None:
         shipped = rows[0]["pipeline"]
         for row in rows[1:]:
             if "pipeline" in row:
-                print(f"  {row['run']}: " + "; ".join(f"{scenes} {paired_difference(row['pipeline'][scenes], shipped[scenes], key)}"
-                                                     for scenes in sets))
+                print(f"  {row['run']}: " + "; ".join(
+                    f"{scenes} {paired_difference(with_people(row['pipeline'][scenes], scenes), with_people(shipped[scenes], scenes), key)}"
+                    for scenes in sets))
 
 
 def ship(args) -> None:

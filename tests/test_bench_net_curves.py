@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -13,8 +14,12 @@ def test_paired_difference_compares_the_scenes_both_scored():
     run = {"per_scene": {"a": {"relit": 17.0}, "b": {"relit": 18.0}, "c": {"relit": 16.0}, "d": {"relit": 9.0}}}
     shipped = {"per_scene": {"a": {"relit": 16.5}, "b": {"relit": 18.2}, "c": {"relit": 15.0}}}
     # d is left out (the shipped net has no score there): +0.5, -0.2, +1.0
-    assert net_curves.paired_difference(run, shipped, "relit") == "+0.433 (se 0.348, better in 2 of 3)"
+    assert net_curves.paired_difference(run, shipped, "relit") == "+0.433 (se 0.348 over 3 people, better in 2 of 3)"
     assert net_curves.paired_difference({}, shipped, "relit") == "-"  # a score from before per-scene ones
+    # a and b are one person: the standard error is over the people's means (+0.15 and +1.0)
+    for scene in "ab":
+        run["per_scene"][scene]["person"] = 7
+    assert net_curves.paired_difference(run, shipped, "relit") == "+0.433 (se 0.425 over 2 people, better in 2 of 3)"
     assert net_curves.paired_difference(run, shipped, "shading") == "-"
 
 
@@ -104,3 +109,12 @@ def test_ship_records_the_runs_scores_in_its_manifest_entry(tmp_path, monkeypatc
     shipped = json.loads((tmp_path / "models" / "manifest.json").read_text())["models"]["delight"]
     assert shipped["metrics"] == {"split": "val", "count": 0, "pipeline": {"SETS": {"relit": 17.8}}}
     assert shipped["training"]["run_dir"] == "runs/r"
+
+
+def test_with_people_marks_each_scene_with_its_person(tmp_path):
+    for scene, seed in (("val_000000", 11), ("val_000001", 11), ("val_000002", 12)):
+        (tmp_path / scene).mkdir()
+        (tmp_path / scene / "scene.json").write_text(json.dumps({"spec": {"person_seed": seed}}))
+    scores = {"per_scene": {name: {"relit": 17.0} for name in ("val_000000", "val_000001", "val_000002", "gone")}}
+    marked = net_curves.with_people(scores, str(tmp_path))["per_scene"]
+    assert [marked[name].get("person") for name in sorted(marked)] == [None, 11, 11, 12]
