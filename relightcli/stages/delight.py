@@ -84,10 +84,11 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
 SHADING_DIP_SIGMA = 1.0 / 64
 
 
-# The albedo level's error, RMS over the 20 validation scenes at 512 (true mask, `python
-# bench/light_solve.py data/evalval512 data/factory512val --split val --use-gt-mask`): log2 of
-# the true albedo's median luminance over the person over ours
-ALBEDO_LEVEL_RMS_STOPS = 0.67
+# The albedo level's error, RMS over the 60 validation people at 512 (true mask, `python
+# bench/light_solve.py data/evalval512p60 data/factory512val60 --split val --use-gt-mask`): log2
+# of the true albedo's median luminance over the person over ours (0.67 on the 4 people of
+# data/evalval512)
+ALBEDO_LEVEL_RMS_STOPS = 0.70
 
 
 def albedo_level_note(gain: float) -> dict:
