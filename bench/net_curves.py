@@ -123,12 +123,12 @@ def eval_scores(models: Path, scenes: str) -> dict:
     # each scene's dB, for the paired comparison with the shipped net (paired_difference)
     scores["per_scene"] = {row["scene"]: {key: round(row[key]["psnr"], 3) for key in ("relit", "shading") if row.get(key)}
                            for row in report.get("per_scene", []) if not row.get("error")}
-    return with_people(scores, scenes)
+    return scores
 
 
 def with_people(scores: dict, scenes: str) -> dict:
     """Each scene's score marked with whose scene it is (the factory's person seed, from the
-    scene's scene.json), for paired_difference; scores kept from before it are marked too."""
+    scene's scene.json), for paired_difference."""
     for scene, row in scores.get("per_scene", {}).items():
         spec = Path(scenes) / scene / "scene.json"
         if "person" not in row and spec.is_file():
