@@ -44,9 +44,11 @@ def _samples_used(trainer) -> dict:
             for split in dataset.split_names}
 
 
-def _started_from(config, models_dir: Path) -> dict | None:
+def _started_from(config, models_dir: Path, run_dir: Path) -> dict | None:
     """A fine-tuned net's origin: the record of the file it started from (config.init), taken
-    from `models_dir`'s manifest entry when that entry describes the same file (its sha256)."""
+    from `models_dir`'s manifest entry when that entry describes the same file (its sha256).
+    When that file is this run's own earlier export (exported into the folder it started from,
+    then again), its entry's origin stands."""
     import json
 
     from relightcli.nets.manifest import sha256_file
@@ -58,6 +60,9 @@ def _started_from(config, models_dir: Path) -> dict | None:
     sha256 = sha256_file(config.init)
     if entry.get("sha256") != sha256:
         return {"sha256": sha256, "file": str(config.init)}
+    exported_by = entry.get("training", {}).get("run_dir")
+    if "fine_tuned_from" in entry and exported_by and Path(exported_by).resolve() == Path(run_dir).resolve():
+        return entry["fine_tuned_from"]
     return {key: entry[key] for key in ("sha256", "training", "training_data", "metrics") if key in entry}
 
 
@@ -71,7 +76,7 @@ def export_trained(trainer, models_dir: str | Path, card: dict, run: dict) -> di
     multiple = net.io_contract().multiple
     size = max(multiple, int(math.ceil(config.export_size / multiple)) * multiple)
     path = Path(models_dir) / f"{config.net}.onnx"
-    origin = _started_from(config, Path(models_dir))  # read before the export replaces the file
+    origin = _started_from(config, Path(models_dir), trainer.out)  # read before the export replaces the file
     extra = _json_safe({
         "training": {"config": config.to_dict(), "step": run["step"], "elapsed_s": round(run["elapsed_s"], 1),
                      "stopped_by": run["stopped_by"], "run_dir": str(trainer.out)},

@@ -107,3 +107,8 @@ def test_a_net_fine_tuned_from_a_shipped_file_keeps_its_record(all_nets, data_di
     assert after["training"]["config"]["init"] == str(folder / "ao.onnx")
     # the training samples it saw: 2 of the 3 (train_samples)
     assert after["training_data"]["samples_used"] == {"train": 2, "val": 1, "test": 1}
+    # exported again from the same run: the file it replaced is its own export, the origin stands
+    assert main(["ao", "--data", str(data_dir), "--out", str(tmp_path / "run"), "--export-to", str(folder),
+                 *TINY, "--set", f'init="{folder / "ao.onnx"}"', "--set", "train_samples=2"]) == 0
+    again = json.loads((folder / "manifest.json").read_text())["models"]["ao"]
+    assert again["fine_tuned_from"] == after["fine_tuned_from"]
