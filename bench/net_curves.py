@@ -131,7 +131,7 @@ def with_people(scores: dict, scenes: str) -> dict:
     scene's scene.json), for paired_difference."""
     for scene, row in scores.get("per_scene", {}).items():
         spec = Path(scenes) / scene / "scene.json"
-        if "person" not in row and spec.is_file():
+        if spec.is_file():
             row["person"] = json.loads(spec.read_text()).get("spec", {}).get("person_seed")
     return scores
 
@@ -253,12 +253,15 @@ def score(args) -> None:
     if sets and len(rows) > 1:  # each run against the shipped net, scene by scene
         key = "relit" if args.family == "delight" else "shading"
         print(f"\n{key} dB against the shipped net, paired by scene:")
+        for row in rows:
+            for scenes in sets:
+                if "pipeline" in row:
+                    with_people(row["pipeline"][scenes], scenes)
         shipped = rows[0]["pipeline"]
         for row in rows[1:]:
             if "pipeline" in row:
-                print(f"  {row['run']}: " + "; ".join(
-                    f"{scenes} {paired_difference(with_people(row['pipeline'][scenes], scenes), with_people(shipped[scenes], scenes), key)}"
-                    for scenes in sets))
+                print(f"  {row['run']}: " + "; ".join(f"{scenes} {paired_difference(row['pipeline'][scenes], shipped[scenes], key)}"
+                                                     for scenes in sets))
 
 
 def ship(args) -> None:
