@@ -7,7 +7,11 @@ own pipeline (`relight eval`'s: the default method and albedo, 512 crops), on ev
 Rows (every row after `ours` keeps the true mask, and is scored against `true mask`):
   ours             the product as users run it (its own mask)
   true mask        the scene's mask (gt_mask.png) as the input's
+  true body        the factory's naked body under the clothes, posed as rendered, in place of
+                   the fitted body (export.factory.person.naked_body): a perfect body fit
   true normals     the geometry stage's front normals replaced by the true ones
+  true depth       front and back depth replaced by the factory's (as in `true geometry`),
+                   the net's normals kept
   true geometry    front and back normals and depth replaced by the factory's (the depth
                    moved to our front depth's median over the person, so the fitted bodies and
                    the reconstruction stay where they were; the silhouette's rim pixels blend
@@ -17,7 +21,6 @@ Rows (every row after `ours` keeps the true mask, and is scored against `true ma
   true light, net level  the same light, the albedo levelled to the net's as the product does
   true albedo      relit = the true albedo x our shading (no rerun)
   true shading     relit = our albedo x the true shading (no rerun)
-There is no row for the fitted body: the eval scenes keep no body parameters.
 Relit / albedo / shading PSNR by `relight eval`'s protocol, the normals' mean angle; the means
 over the scenes every row scored; prints the table with each row's gain over `true mask`.
 """
@@ -40,18 +43,21 @@ from bench_geometry_prior import with_true_normals  # noqa: E402
 from light_solve import substituted  # noqa: E402
 
 from export.factory import dataset  # noqa: E402
+from export.factory.person import naked_body  # noqa: E402
+from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
 from relightcli import compose, stages  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene, scene_metrics  # noqa: E402
 from relightcli.pipeline import RelightOptions, predict_scene  # noqa: E402
 from relightcli.stages.frame import Models, unit  # noqa: E402
 
-ROWS = ("ours", "true mask", "true normals", "true geometry", "true light", "true light, net level",
+ROWS = ("ours", "true mask", "true body", "true normals", "true depth", "true geometry", "true light", "true light, net level",
         "true albedo", "true shading")
 KEYS = ("relit", "albedo", "shading", "normal_deg")
 
 
-def with_true_geometry(geometry_stage, truth: dict):
-    """The geometry stage, then the factory's normals and depth (full frame) in its maps."""
+def with_true_geometry(geometry_stage, truth: dict, normals: bool = True):
+    """The geometry stage, then the factory's depth and (`normals`) normals (full frame) in its
+    maps."""
     inside = truth["mask"] > 0.5
 
     def filled(depth):  # outside the person: the person's median, so cropping blends no zeros in
@@ -67,11 +73,51 @@ def with_true_geometry(geometry_stage, truth: dict):
         back = compose.crop_square(filled(truth["back_depth"]), box) * scale
         person = frame.crop_mask > 0.5
         shift = np.median(g.front_depth[person]) - np.median(front[person])
-        normal = unit(compose.crop_square(truth["normal"], box))
-        frame.geometry = replace(g, front_normal=normal, back_normal=unit(compose.crop_square(truth["back_normal"], box)),
-                                 front_depth=front + shift, back_depth=np.minimum(back + shift, front + shift))
-        frame.normal = normal * (frame.crop_mask[..., None] > 0.5)
+        g = replace(g, front_depth=front + shift, back_depth=np.minimum(back + shift, front + shift))
+        if normals:
+            normal = unit(compose.crop_square(truth["normal"], box))
+            g = replace(g, front_normal=normal, back_normal=unit(compose.crop_square(truth["back_normal"], box)))
+            frame.normal = normal * (frame.crop_mask[..., None] > 0.5)
+        frame.geometry = g
     return stage
+
+
+def true_body_in_crop(meta: dict, rect, box, photo_width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The scene's naked body (export.factory.person.naked_body) in the crop's world frame
+    (body_fit.BodyFit's: x and y span [-1, 1] over the crop, z in the same unit, +Z toward the
+    viewer): (vertices (V, 3) float64, triangles (F, 3) int32)."""
+    vertices, triangles = naked_body(meta["person"]["seed"], meta["person"]["split"])
+    camera = camera_vertices(vertices, meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
+    resolution = int(meta["settings"]["resolution"])
+    pixels = world_to_pixel(camera, rect, resolution) * (photo_width / resolution)
+    units_per_pixel = 2.0 / box.size
+    crop = np.empty_like(camera)
+    crop[:, 0] = (pixels[:, 0] - box.x0) * units_per_pixel - 1.0
+    crop[:, 1] = 1.0 - (pixels[:, 1] - box.y0) * units_per_pixel
+    crop[:, 2] = camera[:, 2] * (photo_width / (rect[1] - rect[0])) * units_per_pixel
+    return crop, triangles
+
+
+def with_true_body(body_stage, meta: dict, rect):
+    """The body stage (its notes), then the first person's fit replaced by the true body; and
+    a body_maps stage tracing it with its own triangles. Eval scenes hold one person."""
+    from relightcli.geometry.body_fit import BodyFit
+    from relightcli.geometry.body_maps import bodies_scene, render_body_maps
+
+    triangles = []
+
+    def body(frame, options, models):
+        body_stage(frame, options, models)
+        vertices, faces = true_body_in_crop(meta, rect, frame.box, frame.image.shape[1])
+        frame.bodies = [BodyFit(shape=None, rotations=None, translation=None, scale=float("nan"),
+                                vertices=vertices, residual_px=0.0, converged=True, reason="true body")]
+        triangles[:] = [faces]
+
+    def body_maps(frame, options, models):
+        frame.body_scene = bodies_scene([frame.bodies[0].vertices], triangles[0])
+        frame.body_maps = render_body_maps(frame.body_scene, options.resolution, where=frame.crop_mask > 0)
+        frame.body_hits = frame.body_maps.front
+    return body, body_maps
 
 
 def scored(scene, pred: dict) -> dict:
@@ -84,16 +130,19 @@ def scored(scene, pred: dict) -> dict:
 def measure(folder: Path, truth: dict, rows: tuple, models: Models) -> dict:
     scene = load_scene(folder)
     options = RelightOptions(outputs=("relit", "albedo", "shading", "normal"), threads=2)
-    gains = np.asarray(json.loads((folder / "scene.json").read_text())["spec"]["augmentation"]["gains"], np.float32)
-    out, geometry_stage = {}, stages.STAGES["geometry"]
+    meta = json.loads((folder / "scene.json").read_text())
+    gains = np.asarray(meta["spec"]["augmentation"]["gains"], np.float32)
+    out, kept = {}, dict(stages.STAGES)
     for row in rows:
         if row in ("true albedo", "true shading"):
             continue
         try:
+            if row == "true body":
+                stages.STAGES["body"], stages.STAGES["body_maps"] = with_true_body(kept["body"], meta, truth["rect"])
             if row == "true normals":
-                stages.STAGES["geometry"] = with_true_normals(geometry_stage, scene.normal)
-            if row == "true geometry":
-                stages.STAGES["geometry"] = with_true_geometry(geometry_stage, truth)
+                stages.STAGES["geometry"] = with_true_normals(kept["geometry"], scene.normal)
+            if row in ("true depth", "true geometry"):
+                stages.STAGES["geometry"] = with_true_geometry(kept["geometry"], truth, normals=row == "true geometry")
             source = {"true light": "true-light-own-level", "true light, net level": "true-light"}.get(row, "")
             with substituted(source, truth["light_a"] * gains):
                 pred = predict_scene(scene, options, use_gt_mask=row != "ours", models=models)
@@ -101,7 +150,7 @@ def measure(folder: Path, truth: dict, rows: tuple, models: Models) -> dict:
             out[row] = {"error": str(error)}
             continue
         finally:
-            stages.STAGES["geometry"] = geometry_stage
+            stages.STAGES.update(kept)
         out[row] = scored(scene, pred)
         if row == "true mask":
             out["true albedo"] = {**scored(scene, {**pred, "relit": scene.albedo * pred["shading"]}), "albedo": None}

@@ -278,13 +278,9 @@ def build_person(seed: int, split: str) -> Person:
     """
     _check_request(seed, split)
     base = base_model()
-    streams = np.random.SeedSequence([int(seed), SPLITS.index(split)]).spawn(4)
-    r_shape, r_pose, r_outfit, r_albedo = (np.random.default_rng(s) for s in streams)
-    params, shaped = sample_body(r_shape, base)
+    r_shape, r_pose, r_outfit, r_albedo = _streams(seed, split)
+    params, shaped, pose, rotations = _shape_and_pose(base, split, r_shape, r_pose)
     outfit = choose_outfit(r_outfit, split, params.gender)
-    pose = str(r_pose.choice(splits()["pose"][split]))
-    rotations = skinning.perturb_rotations(pose_rotations(pose, base.skeleton),
-                                           base.skeleton.names, r_pose)
     tone_t = float(r_albedo.random())
     metadata = {"seed": int(seed), "split": split, "shape": params.as_dict(),
                 "stature_m": shape.stature(shaped, np.unique(base.mesh.faces[base.body_faces])),
@@ -297,6 +293,35 @@ def build_person(seed: int, split: str) -> Person:
     parts = [body, eyes] + garments
     posed, root, joints = _pose_parts(parts, base, shaped, rotations)
     return _assemble(parts, posed, root, face_region(base, shaped), metadata, joints)
+
+
+def naked_body(seed: int, split: str) -> tuple[np.ndarray, np.ndarray]:
+    """The body of build_person(seed, split) without clothes, hair or eyes, posed and placed as
+    that person is (the same joints): (vertices (V, 3) float32 m, faces (F, 3) int32), what a
+    perfect body fit would find under the clothes (bench/oracles.py's `true body`)."""
+    _check_request(seed, split)
+    base = base_model()
+    r_shape, r_pose, _, _ = _streams(seed, split)
+    _, shaped, _, rotations = _shape_and_pose(base, split, r_shape, r_pose)
+    part = _Part(shaped, base.weights, base.mesh.faces[base.body_faces], base.mesh.uvs[base.body_faces], 0, None)
+    (posed,), _, joints = _pose_parts([part], base, shaped, rotations)
+    offset = joints[0] - build_person(seed, split).joints[0]  # the clothed person's feet set y = 0
+    used, faces = np.unique(part.faces, return_inverse=True)
+    return (posed[used] - offset).astype(np.float32), faces.reshape(-1, 3).astype(np.int32)
+
+
+def _streams(seed: int, split: str) -> list[np.random.Generator]:
+    """The person's four random streams: shape, pose, outfit, albedo."""
+    streams = np.random.SeedSequence([int(seed), SPLITS.index(split)]).spawn(4)
+    return [np.random.default_rng(s) for s in streams]
+
+
+def _shape_and_pose(base: BaseModel, split: str, r_shape, r_pose) -> tuple:
+    """(shape params, shaped rest vertices, pose name, perturbed bone rotations)."""
+    params, shaped = sample_body(r_shape, base)
+    pose = str(r_pose.choice(splits()["pose"][split]))
+    rotations = skinning.perturb_rotations(pose_rotations(pose, base.skeleton), base.skeleton.names, r_pose)
+    return params, shaped, pose, rotations
 
 
 def _assemble(parts, posed, root, face_mask, metadata, joints) -> Person:

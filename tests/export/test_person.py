@@ -92,3 +92,17 @@ def test_face_region_is_on_the_head(person):
 def test_bad_requests_raise(seed, split):
     with pytest.raises(UsageError):
         build_person(seed, split)
+
+
+def test_naked_body_lies_under_the_clothes(person):
+    """The body a perfect fit would find: posed and placed as the clothed person, its skin
+    where the person's skin shows, nowhere farther than a garment's thickness from the person."""
+    from scipy.spatial import cKDTree
+
+    from export.factory.person import naked_body
+
+    vertices, faces = naked_body(7, "train")
+    assert faces.min() == 0 and faces.max() == len(vertices) - 1
+    distance, _ = cKDTree(person.vertices).query(vertices)
+    assert (distance < 1e-5).mean() > 0.5  # the skin the clothes leave bare is the same skin
+    assert distance.max() < 0.1
