@@ -17,6 +17,8 @@ joints are compared with the true ones:
   yaw deg   the same direction's turn about the camera's vertical axis alone
 
 Scenes where nobody is found or the fit does not converge are counted and left out.
+`--true-world`: BlazePose's world landmarks replaced by the true body's (bench/oracles.py's
+`true 3D landmarks`), what the fit makes of a BlazePose without depth noise.
 """
 
 from __future__ import annotations
@@ -30,10 +32,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
 from export.factory import dataset  # noqa: E402
 from export.factory.person import base_model, build_person  # noqa: E402
 from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
+from relightcli import stages  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.errors import RelightError  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
@@ -99,13 +103,21 @@ def fitted_joints(frame, models) -> tuple[dict, dict] | None:
     return metres, pixels
 
 
-def measure(folder: Path, data, split: str, use_gt_mask: bool, models) -> dict:
+def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_world: bool = False) -> dict:
     scene = load_scene(folder)
     sample_id = folder.name.split("_", 1)[1]
     truth_m, truth_px, rect = true_joints(data, split, sample_id)
     options = RelightOptions(outputs=("relit",), method="sh9", threads=2)
-    frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask if use_gt_mask else None,
-                          load_envmap(scene.target_path), options, ItemReport(str(folder)), models)
+    body_stage = stages.STAGES["body"]
+    if true_world:
+        from oracles import with_true_world
+
+        stages.STAGES["body"] = with_true_world(body_stage, json.loads((folder / "scene.json").read_text()))
+    try:
+        frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask if use_gt_mask else None,
+                              load_envmap(scene.target_path), options, ItemReport(str(folder)), models)
+    finally:
+        stages.STAGES["body"] = body_stage
     fitted = fitted_joints(frame, models)
     if fitted is None:
         return {"scene": folder.name, "skipped": "no converged fit"}
@@ -131,13 +143,14 @@ def main() -> int:
     parser.add_argument("factory", help="the factory dataset they came from")
     parser.add_argument("--split", default="test")
     parser.add_argument("--use-gt-mask", action="store_true")
+    parser.add_argument("--true-world", action="store_true", help="the true body's world landmarks")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     data, models = dataset.open_dataset(args.factory), Models(2)
     rows = []
     for folder in find_scenes(args.scenes):
         try:
-            rows.append(measure(folder, data, args.split, args.use_gt_mask, models))
+            rows.append(measure(folder, data, args.split, args.use_gt_mask, models, args.true_world))
         except RelightError as error:  # no person found: counted, left out of the means
             rows.append({"scene": folder.name, "skipped": str(error)})
         print({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)

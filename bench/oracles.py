@@ -9,6 +9,8 @@ Rows (every row after `ours` keeps the true mask, and is scored against `true ma
   true mask        the scene's mask (gt_mask.png) as the input's
   true body        the factory's naked body under the clothes, posed as rendered, in place of
                    the fitted body (export.factory.person.naked_body): a perfect body fit
+  true 3D landmarks  BlazePose's world landmarks replaced by the naked body's (its 2D keypoints
+                   kept), the body then fitted as usual: a BlazePose without depth noise
   true normals     the geometry stage's front normals replaced by the true ones
   true depth       front and back depth replaced by the factory's (as in `true geometry`),
                    the net's normals kept
@@ -42,15 +44,17 @@ sys.path.insert(0, str(ROOT / "bench"))
 from bench_geometry_prior import with_true_normals  # noqa: E402
 from light_solve import substituted  # noqa: E402
 
+from export.body_model import posed_landmarks  # noqa: E402
 from export.factory import dataset  # noqa: E402
 from export.factory.person import naked_body  # noqa: E402
 from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
 from relightcli import compose, stages  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene, scene_metrics  # noqa: E402
+from relightcli.geometry.body_model import LANDMARK_NAMES  # noqa: E402
 from relightcli.pipeline import RelightOptions, predict_scene  # noqa: E402
 from relightcli.stages.frame import Models, unit  # noqa: E402
 
-ROWS = ("ours", "true mask", "true body", "true normals", "true depth", "true geometry", "true light", "true light, net level",
+ROWS = ("ours", "true mask", "true body", "true 3D landmarks", "true normals", "true depth", "true geometry", "true light", "true light, net level",
         "true albedo", "true shading")
 KEYS = ("relit", "albedo", "shading", "normal_deg")
 
@@ -82,12 +86,11 @@ def with_true_geometry(geometry_stage, truth: dict, normals: bool = True):
     return stage
 
 
-def true_body_in_crop(meta: dict, rect, box, photo_width: int) -> tuple[np.ndarray, np.ndarray]:
-    """The scene's naked body (export.factory.person.naked_body) in the crop's world frame
-    (body_fit.BodyFit's: x and y span [-1, 1] over the crop, z in the same unit, +Z toward the
-    viewer): (vertices (V, 3) float64, triangles (F, 3) int32)."""
-    vertices, triangles = naked_body(meta["person"]["seed"], meta["person"]["split"])
-    camera = camera_vertices(vertices, meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
+def true_body_in_crop(body, meta: dict, rect, box, photo_width: int) -> np.ndarray:
+    """(V, 3) float64: a scene's naked body's vertices (export.factory.person.naked_body) in the
+    crop's world frame (body_fit.BodyFit's: x and y span [-1, 1] over the crop, z in the same
+    unit, +Z toward the viewer)."""
+    camera = camera_vertices(body.vertices, meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
     resolution = int(meta["settings"]["resolution"])
     pixels = world_to_pixel(camera, rect, resolution) * (photo_width / resolution)
     units_per_pixel = 2.0 / box.size
@@ -95,7 +98,15 @@ def true_body_in_crop(meta: dict, rect, box, photo_width: int) -> tuple[np.ndarr
     crop[:, 0] = (pixels[:, 0] - box.x0) * units_per_pixel - 1.0
     crop[:, 1] = 1.0 - (pixels[:, 1] - box.y0) * units_per_pixel
     crop[:, 2] = camera[:, 2] * (photo_width / (rect[1] - rect[0])) * units_per_pixel
-    return crop, triangles
+    return crop
+
+
+def true_world_landmarks(body, meta: dict) -> np.ndarray:
+    """(33, 3) the naked body's BlazePose landmarks as BlazePose's world landmarks are given:
+    metres, camera-aligned axes, hip-centred, y down, z away from the camera."""
+    camera = camera_vertices(posed_landmarks(body), meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
+    hips = [LANDMARK_NAMES.index("left_hip"), LANDMARK_NAMES.index("right_hip")]
+    return (camera - camera[hips].mean(axis=0)) * np.array([1.0, -1.0, -1.0])
 
 
 def with_true_body(body_stage, meta: dict, rect):
@@ -104,20 +115,31 @@ def with_true_body(body_stage, meta: dict, rect):
     from relightcli.geometry.body_fit import BodyFit
     from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 
-    triangles = []
+    body = naked_body(meta["person"]["seed"], meta["person"]["split"])
 
-    def body(frame, options, models):
+    def stage_body(frame, options, models):
         body_stage(frame, options, models)
-        vertices, faces = true_body_in_crop(meta, rect, frame.box, frame.image.shape[1])
+        vertices = true_body_in_crop(body, meta, rect, frame.box, frame.image.shape[1])
         frame.bodies = [BodyFit(shape=None, rotations=None, translation=None, scale=float("nan"),
                                 vertices=vertices, residual_px=0.0, converged=True, reason="true body")]
-        triangles[:] = [faces]
 
-    def body_maps(frame, options, models):
-        frame.body_scene = bodies_scene([frame.bodies[0].vertices], triangles[0])
+    def stage_body_maps(frame, options, models):
+        frame.body_scene = bodies_scene([frame.bodies[0].vertices], body.faces)
         frame.body_maps = render_body_maps(frame.body_scene, options.resolution, where=frame.crop_mask > 0)
         frame.body_hits = frame.body_maps.front
-    return body, body_maps
+    return stage_body, stage_body_maps
+
+
+def with_true_world(body_stage, meta: dict):
+    """The body stage fitted to the first person's BlazePose keypoints and the true body's world
+    landmarks (true_world_landmarks) in place of BlazePose's."""
+    world = true_world_landmarks(naked_body(meta["person"]["seed"], meta["person"]["split"]), meta)
+
+    def stage(frame, options, models):
+        person = frame.people[0]
+        frame.people[0] = replace(person, pose=replace(person.pose, world=world.astype(person.pose.world.dtype)))
+        body_stage(frame, options, models)
+    return stage
 
 
 def scored(scene, pred: dict) -> dict:
@@ -139,6 +161,8 @@ def measure(folder: Path, truth: dict, rows: tuple, models: Models) -> dict:
         try:
             if row == "true body":
                 stages.STAGES["body"], stages.STAGES["body_maps"] = with_true_body(kept["body"], meta, truth["rect"])
+            if row == "true 3D landmarks":
+                stages.STAGES["body"] = with_true_world(kept["body"], meta)
             if row == "true normals":
                 stages.STAGES["geometry"] = with_true_normals(kept["geometry"], scene.normal)
             if row in ("true depth", "true geometry"):

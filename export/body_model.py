@@ -153,6 +153,18 @@ def rest_points(vertices: np.ndarray, base: person.BaseModel, rows, n_body: int)
     return np.concatenate([vertices[:n_body], heads, np.stack(marks)])
 
 
+def posed_landmarks(body: person.NakedBody) -> np.ndarray:
+    """(33, 3) float64 m: the BlazePose landmarks of a factory person's naked body
+    (person.naked_body), each rest landmark moved with its bone, as the body model poses them:
+    where a perfect BlazePose would put them (bench/oracles.py's `true 3D landmarks`)."""
+    base = person.base_model()
+    n_body = body_vertex_count(base)
+    rows = landmark_rows(base, n_body)
+    marks = rest_points(body.shaped, base, rows, n_body)[-len(rows):]
+    bones = body.transforms[[row[3] for row in rows]]
+    return np.einsum("lij,lj->li", bones, np.c_[marks, np.ones(len(marks))])
+
+
 def sample_points(base: person.BaseModel, rows, n_body: int, first: int, count: int) -> np.ndarray:
     """(count, P, 3) float64 m: rest points of factory bodies number first..first+count-1,
     body i drawn from SeedSequence([SEED, i])."""

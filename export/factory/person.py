@@ -295,19 +295,33 @@ def build_person(seed: int, split: str) -> Person:
     return _assemble(parts, posed, root, face_region(base, shaped), metadata, joints)
 
 
-def naked_body(seed: int, split: str) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class NakedBody:
     """The body of build_person(seed, split) without clothes, hair or eyes, posed and placed as
-    that person is (the same joints): (vertices (V, 3) float32 m, faces (F, 3) int32), what a
-    perfect body fit would find under the clothes (bench/oracles.py's `true body`)."""
+    that person is (the same joints): what a perfect body fit would find under the clothes.
+    vertices (V, 3) float32 m, every base-mesh vertex posed (the body's are 0..n-1, the rest
+    are helpers no face uses); faces (F, 3) int32, the body's; shaped (V, 3) the rest
+    vertices; transforms (B, 3, 4) the bones' affines from rest to placed."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    shaped: np.ndarray
+    transforms: np.ndarray
+
+
+def naked_body(seed: int, split: str) -> NakedBody:
+    """The person's body under the clothes (bench/oracles.py's `true body`)."""
     _check_request(seed, split)
     base = base_model()
     r_shape, r_pose, _, _ = _streams(seed, split)
     _, shaped, _, rotations = _shape_and_pose(base, split, r_shape, r_pose)
-    part = _Part(shaped, base.weights, base.mesh.faces[base.body_faces], base.mesh.uvs[base.body_faces], 0, None)
-    (posed,), _, joints = _pose_parts([part], base, shaped, rotations)
-    offset = joints[0] - build_person(seed, split).joints[0]  # the clothed person's feet set y = 0
-    used, faces = np.unique(part.faces, return_inverse=True)
-    return (posed[used] - offset).astype(np.float32), faces.reshape(-1, 3).astype(np.int32)
+    heads, _ = base.skeleton.joint_positions(shaped)
+    transforms = skinning.bone_transforms(base.skeleton, heads, rotations)
+    joints = np.einsum("bij,bj->bi", transforms, np.c_[heads, np.ones(len(heads))])[:, :3]
+    placed = transforms.copy()  # the clothed person's feet set y = 0
+    placed[:, :, 3] -= joints[0] - build_person(seed, split).joints[0]
+    vertices = skinning.skin_vertices(shaped, base.weights, placed)
+    return NakedBody(vertices.astype(np.float32), base.mesh.faces[base.body_faces].astype(np.int32), shaped, placed)
 
 
 def _streams(seed: int, split: str) -> list[np.random.Generator]:
