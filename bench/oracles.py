@@ -9,8 +9,9 @@ Rows (every row after `ours` keeps the true mask, and is scored against `true ma
   true mask        the scene's mask (gt_mask.png) as the input's
   true body        the factory's naked body under the clothes, posed as rendered, in place of
                    the fitted body (export.factory.person.naked_body): a perfect body fit
-  true 3D landmarks  BlazePose's world landmarks replaced by the naked body's (its 2D keypoints
-                   kept), the body then fitted as usual: a BlazePose without depth noise
+  true 3D landmarks  BlazePose's world landmarks (and its image landmarks' depths) replaced by
+                   the naked body's, its 2D keypoints kept, the body then fitted as usual: a
+                   BlazePose without depth noise
   true normals     the geometry stage's front normals replaced by the true ones
   true depth       front and back depth replaced by the factory's (as in `true geometry`),
                    the net's normals kept
@@ -137,7 +138,13 @@ def with_true_world(body_stage, meta: dict):
 
     def stage(frame, options, models):
         person = frame.people[0]
-        frame.people[0] = replace(person, pose=replace(person.pose, world=world.astype(person.pose.world.dtype)))
+        # the image landmarks' depths too (the fit's witness of the turn, body_fit.depth_side),
+        # in their pixels: the world's metres scaled by the landmarks' own spread over the world's
+        landmarks = person.pose.landmarks.copy()
+        spread = np.ptp(landmarks[:, :2], axis=0).max() / max(np.ptp(world[:, :2], axis=0).max(), 1e-9)
+        landmarks[:, 2] = world[:, 2] * spread
+        pose = replace(person.pose, world=world.astype(person.pose.world.dtype), landmarks=landmarks)
+        frame.people[0] = replace(person, pose=pose)
         body_stage(frame, options, models)
     return stage
 

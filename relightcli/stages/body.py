@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from relightcli import compose
+from relightcli.geometry.body_fit import depth_side
 from relightcli.stages.crop import person_keypoints_in_crop
 from relightcli.stages.frame import Frame, Models
 
@@ -18,7 +19,8 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     frame.notes["body"] per person the seconds, RMS keypoint residual (crop pixels), whether
     the fit converged (or why not) and, if it did, whether the fitted body faces the camera
     (`seen_from` front or behind: BlazePose takes some front-facing people for back views and
-    the other way round: docs/RESULTS.md, The body and the face)."""
+    the other way round: docs/RESULTS.md, The body and the face), and `turn` when the fit was
+    redone to the mirrored turn the image landmarks' depths ask for (body_fit.depth_side)."""
     import time
 
     model = models.body_model()
@@ -27,7 +29,8 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     for person in frame.people:
         start = time.perf_counter()
         fit = _fit_on_one_opencv_thread(model, person_keypoints_in_crop(person, frame.view.scale, frame.box),
-                                        person.pose.landmarks[:, 3], person.pose.world, silhouette, models)
+                                        person.pose.landmarks[:, 3], person.pose.world, silhouette, models,
+                                        depth_side(person.pose.landmarks))
         fits.append(fit)
         residual = float(fit.residual_px)
         note = {"seconds": round(time.perf_counter() - start, 4),
@@ -35,12 +38,14 @@ def stage_body(frame: Frame, options, models: Models) -> None:
                 "converged": bool(fit.converged), "reason": fit.reason}
         if fit.converged:
             note["seen_from"] = "front" if fit.faces_camera else "behind"
+            if fit.turn_mirrored:
+                note["turn"] = "mirrored: the landmarks' depths say the other way"
         people.append(note)
     frame.bodies = fits
     frame.notes["body"] = {"people": people}
 
 
-def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette, models=None):
+def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette, models=None, turn_witness=None):
     """fit_body with OpenCV and BLAS on one thread and without Intel IPP: the silhouette term's
     OpenCV calls round differently with another thread count (1e-8 on the vertices), and with
     IPP its precise distance transform differed from one process to the next on the same input
@@ -58,7 +63,7 @@ def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette, m
     cv2.ipp.setUseIPP(False)
     try:
         with one_blas_thread(models):
-            return fit_body(model, keypoints, visibility, world, silhouette)
+            return fit_body(model, keypoints, visibility, world, silhouette, depth_side=turn_witness)
     finally:
         cv2.setNumThreads(threads)
         cv2.ipp.setUseIPP(ipp)

@@ -329,3 +329,67 @@ def test_the_crop_size_must_be_known(model):
     _, (keypoints, visibility, world) = make_person(model, "T-pose", seed=6)
     with pytest.raises(ValueError, match="resolution"):
         fit_body(model, keypoints, visibility, world)
+
+
+# --- the turn's sign -------------------------------------------------------------------------
+
+def turned_person(model, yaw, seed=11):
+    """A person in the A-pose turned `yaw` radians about the vertical (torso_yaw's sense)."""
+    truth, (keypoints, visibility, world) = make_person(model, "A-pose", seed, noise_px=0.5, noise_m=0.0)
+    world = body_fit.turn_world(world, yaw)
+    shape, rotations, _, _ = truth
+    rotations = rotations.copy()
+    _, _, landmarks = model.posed(shape, rotations)
+    turn = axis_angle_to_matrix(np.array([0.0, yaw - body_fit.torso_yaw(landmarks), 0.0]))
+    rotations[0] = turn @ rotations[0]
+    keypoints, _ = observe_landmarks(model, shape, rotations, np.zeros(3), 0.95, RESOLUTION)
+    return keypoints, visibility, world
+
+
+def image_landmarks(world):
+    """BlazePose's image landmarks (x, y, z in one pixel unit, z toward the camera negative) of
+    world landmarks, 300 px a metre."""
+    return np.asarray(world) * 300.0 + np.array([256.0, 256.0, 0.0])
+
+
+def test_depth_side_says_which_side_is_farther_in_torso_lengths():
+    _, (_, _, world) = make_person(BodyModel.load(), "A-pose", seed=3, noise_m=0.0)
+    for yaw in (0.4, -0.4):
+        side = body_fit.depth_side(image_landmarks(body_fit.turn_world(world, yaw)))
+        assert np.sign(side) == np.sign(yaw) and 0.1 < abs(side) < 2.0
+    # in torso lengths: the same at any pixel scale
+    turned = image_landmarks(body_fit.turn_world(world, 0.4))
+    assert body_fit.depth_side(turned * 3.0) == pytest.approx(body_fit.depth_side(turned))
+    turned[11, 2] = np.nan
+    assert np.isnan(body_fit.depth_side(turned))
+
+
+def test_turn_world_turns_the_torso_about_the_hips_and_keeps_the_bones(model):
+    _, (_, _, world) = make_person(model, "T-pose", seed=4, noise_m=0.0)
+    turned = body_fit.turn_world(world, 0.6)
+    assert body_fit.torso_yaw(body_fit.blazepose_world_to_model(turned)) == pytest.approx(0.6, abs=1e-9)
+    np.testing.assert_allclose(turned[[23, 24]].mean(axis=0), world[[23, 24]].mean(axis=0), atol=1e-12)
+    distances = lambda points: np.linalg.norm(points[:, None] - points[None], axis=-1)  # noqa: E731
+    np.testing.assert_allclose(distances(turned), distances(world), atol=1e-12)
+
+
+def test_a_firm_depth_witness_refits_the_turn_the_world_landmarks_mirrored(model):
+    yaw = 0.45  # 26 degrees; BlazePose's world landmarks say -26
+    keypoints, visibility, world = turned_person(model, yaw)
+    wrong = body_fit.turn_world(world, -yaw)
+
+    def fitted_yaw(fit):
+        _, _, landmarks = model.posed(fit.shape, fit.rotations)
+        return body_fit.torso_yaw(landmarks)
+
+    plain = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION)
+    assert plain.converged and fitted_yaw(plain) < 0 and not plain.turn_mirrored
+    refit = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION, depth_side=1.0)
+    assert refit.converged and refit.turn_mirrored
+    assert fitted_yaw(refit) == pytest.approx(yaw, abs=np.radians(6))
+    assert refit.residual_px <= plain.residual_px + 0.5
+    # a witness that agrees with the fit, or a faint one, changes nothing
+    for side in (-1.0, 0.3, float("nan")):
+        same = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION, depth_side=side)
+        assert not same.turn_mirrored
+        np.testing.assert_array_equal(same.vertices, plain.vertices)
