@@ -7,11 +7,12 @@ image landmarks' depths firmly say the other way, body_fit.depth_side).
     python bench/fit_turn.py data/evalval512p60 data/factory512val60 --split val --out FILE.json
 
 True mask. Per person: the true torso yaw, BlazePose's own (its world landmarks' hips and
-shoulders), each fit's yaw, RMS keypoint residual and 3D joint error, and the nose's side of the
-shoulders' midpoint in 2D (in shoulder widths). Printed: the torso yaw error (mean, median) and
-the 3D joints of each fit, of the better one (an oracle), and of the one each cue picks: the
-lower keypoint residual, the nose's side, BlazePose's own sign; and how often each sign agrees
-with the truth's over the people turned more than 10 degrees.
+shoulders), each fit's yaw, RMS keypoint residual and 3D joint error, the nose's side of the
+shoulders' midpoint in 2D (in shoulder widths) and the image landmarks' depth_side (body_fit).
+Printed: the torso yaw error (mean, median) and the 3D joints of each fit, of the better one
+(an oracle), of the one each cue picks (the lower keypoint residual, the nose's side,
+BlazePose's own sign) and of the product's; and how often each sign agrees with the truth's
+over the people turned more than 10 degrees.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def measure(folder: Path, data, split: str, models) -> dict:
         mirrored = None if world is None else np.asarray(world) * np.array([1.0, 1.0, -1.0])
         fits = [fit_once(model, keypoints, visibility, w, silhouette, models) for w in (world, mirrored)]
         fits.append(fit_once(model, keypoints, visibility, world, silhouette, models, turn_witness))
-        seen.update(inputs=(keypoints, world), fits=fits)
+        seen.update(inputs=(keypoints, world), fits=fits, witness=turn_witness)
         return fits[-1]
 
     scene = load_scene(folder)
@@ -74,7 +75,7 @@ def measure(folder: Path, data, split: str, models) -> dict:
         body_stage._fit_on_one_opencv_thread = fit_once
     if "fits" not in seen:
         return {"scene": folder.name, "skipped": "nobody fitted"}
-    row = {"scene": folder.name, "true_yaw": fit_bench.yaw_deg(fit_bench.facing(truth))}
+    row = {"scene": folder.name, "true_yaw": fit_bench.yaw_deg(fit_bench.facing(truth)), "depth_side": seen["witness"]}
     for tag, fit in zip(("given", "mirrored", "shipped"), seen["fits"]):
         if not fit.converged:
             return {"scene": folder.name, "skipped": f"the {tag} fit did not converge"}
@@ -111,7 +112,7 @@ def summary(rows: list) -> dict:
                      "3d_cm": float(np.mean([r[f"{choose(r)}_3d_cm"] for r in rows]))}
     turned = [r for r in rows if abs(r["true_yaw"]) > 10]
     out["sign_agrees_over_turned"] = {key: float(np.mean([np.sign(r[key]) == np.sign(r["true_yaw"]) for r in turned]))
-                                      for key in ("given_yaw", "blazepose_yaw", "nose_side")}
+                                      for key in ("given_yaw", "blazepose_yaw", "nose_side", "depth_side")}
     out["turned"] = len(turned)
     return out
 

@@ -28,7 +28,7 @@ The turn's sign: the orthographic crop shows how far the torso is turned (the sh
 width), not which way, and BlazePose's world landmarks, which set the start, often say it
 wrong. Its image landmarks' depths say it more often (`depth_side`): when they say the other
 way firmly (TURN_WITNESS_MIN), the body is fitted again from the world landmarks turned to the
-mirrored turn, and that fit is kept if it converges (`fit_body`'s `depth_side`).
+mirrored turn, and that fit is kept if it converges (`fit_body`'s `turn_witness`).
 
 Only FIT_BONES rotate; every other bone keeps the identity, so its world transform is that of
 its nearest rotating ancestor and the fit needs the transforms of those ~20 bones only.
@@ -122,7 +122,7 @@ class BodyFit:
     silhouette_used: whether the silhouette terms took part (a usable mask was given);
     faces_camera: whether the fitted torso faces the camera (False: seen from behind);
     turn_mirrored: whether this is the refit to the mirrored turn the image landmarks' depths
-    asked for (fit_body's `depth_side`)."""
+    asked for (fit_body's `turn_witness`)."""
 
     shape: np.ndarray
     rotations: np.ndarray
@@ -641,8 +641,8 @@ def levenberg_marquardt(fun, jac, x: np.ndarray, evaluations: int) -> np.ndarray
 
 # The image landmarks' depth difference, left minus right, over these pairs; firm when at
 # least TURN_WITNESS_MIN torso lengths. Chosen on the 60 validation people (docs/RESULTS.md,
-# "The fit's turn: its sign"): its sign agrees with the true turn's on 85% of the people turned
-# more than 10 degrees, BlazePose's world torso on 81%, the fit's on 77%.
+# "The fit's turn: its sign": its sign agrees with the true turn's more often than BlazePose's
+# world torso's or the fit's, and where it is large it is right).
 TURN_WITNESS_PAIRS = tuple((_L[f"left_{n}"], _L[f"right_{n}"])
                            for n in ("shoulder", "elbow", "wrist", "hip", "knee", "ankle"))
 TURN_WITNESS_MIN = 0.5
@@ -678,7 +678,7 @@ def turn_world(world: np.ndarray, yaw: float) -> np.ndarray:
 
 def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
              config: FitConfig = FitConfig(), resolution: int | None = None,
-             depth_side: float | None = None) -> BodyFit:
+             turn_witness: float | None = None) -> BodyFit:
     """Fit pose, shape, scale and placement to one person.
 
     keypoints_2d (33, 2) crop pixels (col, row) of an R x R crop; visibility (33,) in [0, 1];
@@ -691,18 +691,18 @@ def fit_body(model: BodyModel, keypoints_2d, visibility, world, silhouette=None,
     converged False and the reason; a fit whose keypoint residual stays above
     config.max_residual_px (at 512 px) comes back with converged False too. A person seen
     from behind or sitting is fitted like any other (BodyFit.faces_camera False from behind).
-    depth_side: the image landmarks' witness of the turn's sign (depth_side above; None or nan:
-    none): a converged fit facing the camera whose turn it firmly contradicts is fitted again
+    turn_witness: the image landmarks' witness of the turn's sign (depth_side above; None or
+    nan: none): a converged fit facing the camera whose turn it firmly contradicts is fitted again
     from the world landmarks turned to the mirrored turn (turn_world), kept if that converges.
     """
     fit = _fit(model, keypoints_2d, visibility, world, silhouette, config, resolution)
-    if depth_side is None or not np.isfinite(depth_side) or abs(depth_side) < TURN_WITNESS_MIN:
+    if turn_witness is None or not np.isfinite(turn_witness) or abs(turn_witness) < TURN_WITNESS_MIN:
         return fit
     if not (fit.converged and fit.faces_camera):
         return fit
     _, _, landmarks = model.posed(fit.shape, fit.rotations)
     yaw = torso_yaw(landmarks)
-    if np.sign(yaw) == np.sign(depth_side):
+    if np.sign(yaw) == np.sign(turn_witness):
         return fit
     mirrored = _fit(model, keypoints_2d, visibility, turn_world(world, -yaw), silhouette, config, resolution)
     return replace(mirrored, turn_mirrored=True) if mirrored.converged else fit

@@ -63,7 +63,7 @@ def _fit_on_one_opencv_thread(model, keypoints, visibility, world, silhouette, m
     cv2.ipp.setUseIPP(False)
     try:
         with one_blas_thread(models):
-            return fit_body(model, keypoints, visibility, world, silhouette, depth_side=turn_witness)
+            return fit_body(model, keypoints, visibility, world, silhouette, turn_witness=turn_witness)
     finally:
         cv2.setNumThreads(threads)
         cv2.ipp.setUseIPP(ipp)

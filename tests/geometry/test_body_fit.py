@@ -384,12 +384,12 @@ def test_a_firm_depth_witness_refits_the_turn_the_world_landmarks_mirrored(model
 
     plain = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION)
     assert plain.converged and fitted_yaw(plain) < 0 and not plain.turn_mirrored
-    refit = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION, depth_side=1.0)
+    refit = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION, turn_witness=1.0)
     assert refit.converged and refit.turn_mirrored
     assert fitted_yaw(refit) == pytest.approx(yaw, abs=np.radians(6))
     assert refit.residual_px <= plain.residual_px + 0.5
     # a witness that agrees with the fit, or a faint one, changes nothing
     for side in (-1.0, 0.3, float("nan")):
-        same = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION, depth_side=side)
+        same = fit_body(model, keypoints, visibility, wrong, resolution=RESOLUTION, turn_witness=side)
         assert not same.turn_mirrored
         np.testing.assert_array_equal(same.vertices, plain.vertices)
