@@ -11,8 +11,9 @@ shoulders), each fit's yaw, RMS keypoint residual and 3D joint error, the nose's
 shoulders' midpoint in 2D (in shoulder widths) and the image landmarks' depth_side (body_fit).
 Printed: the torso yaw error (mean, median) and the 3D joints of each fit, of the better one
 (an oracle), of the one each cue picks (the lower keypoint residual, the nose's side,
-BlazePose's own sign) and of the product's; and how often each sign agrees with the truth's
-over the people turned more than 10 degrees.
+BlazePose's own sign), of the product's, and of the product's rule with the witness's
+threshold at WITNESS_THRESHOLDS (torso lengths); and how often each sign agrees with the
+truth's over the people turned more than 10 degrees.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from export.factory import dataset  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.errors import RelightError  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
-from relightcli.geometry.body_fit import blazepose_world_to_model  # noqa: E402
+from relightcli.geometry.body_fit import TURN_WITNESS_MIN, blazepose_world_to_model  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
@@ -42,6 +43,7 @@ from relightcli.stages import body as body_stage  # noqa: E402
 from relightcli.stages.frame import Models  # noqa: E402
 
 NOSE, LEFT_SHOULDER, RIGHT_SHOULDER, LEFT_HIP, RIGHT_HIP = 0, 11, 12, 23, 24
+WITNESS_THRESHOLDS = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0)
 
 
 def turn_error(a: float, b: float) -> float:
@@ -59,15 +61,19 @@ def measure(folder: Path, data, split: str, models) -> dict:
     seen = {}
     fit_once = body_stage._fit_on_one_opencv_thread
 
-    def fit_thrice(model, keypoints, visibility, world, silhouette, models=None, turn_witness=None):
+    def fit_all(model, keypoints, visibility, world, silhouette, models=None, turn_witness=None):
         mirrored = None if world is None else np.asarray(world) * np.array([1.0, 1.0, -1.0])
         fits = [fit_once(model, keypoints, visibility, w, silhouette, models) for w in (world, mirrored)]
         fits.append(fit_once(model, keypoints, visibility, world, silhouette, models, turn_witness))
+        # the witness at any strength: refitted wherever its sign contradicts the fit's
+        firm = None if turn_witness is None or not np.isfinite(turn_witness) else \
+            float(np.sign(turn_witness)) * max(abs(turn_witness), TURN_WITNESS_MIN)
+        fits.append(fit_once(model, keypoints, visibility, world, silhouette, models, firm))
         seen.update(inputs=(keypoints, world), fits=fits, witness=turn_witness)
-        return fits[-1]
+        return fits[2]
 
     scene = load_scene(folder)
-    body_stage._fit_on_one_opencv_thread = fit_thrice
+    body_stage._fit_on_one_opencv_thread = fit_all
     try:  # the body_normal layer needs the stages up to the body maps, no more
         frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path),
                               RelightOptions(outputs=("body_normal",), threads=2), ItemReport(folder.name), models)
@@ -76,7 +82,7 @@ def measure(folder: Path, data, split: str, models) -> dict:
     if "fits" not in seen:
         return {"scene": folder.name, "skipped": "nobody fitted"}
     row = {"scene": folder.name, "true_yaw": fit_bench.yaw_deg(fit_bench.facing(truth)), "depth_side": seen["witness"]}
-    for tag, fit in zip(("given", "mirrored", "shipped"), seen["fits"]):
+    for tag, fit in zip(("given", "mirrored", "shipped", "any_witness"), seen["fits"]):
         if not fit.converged:
             return {"scene": folder.name, "skipped": f"the {tag} fit did not converge"}
         frame.bodies = [fit]
@@ -105,6 +111,9 @@ def summary(rows: list) -> dict:
         "the nose's side": lambda r: "given" if np.sign(r["given_yaw"]) == np.sign(r["nose_side"]) else "mirrored",
         "BlazePose's sign": lambda r: "given" if np.sign(r["given_yaw"]) == np.sign(r["blazepose_yaw"]) else "mirrored",
     }
+    for threshold in WITNESS_THRESHOLDS:  # the product's rule at other strengths
+        pick[f"the witness from {threshold} torso lengths"] = (
+            lambda r, t=threshold: "any_witness" if abs(r["depth_side"]) >= t else "given")
     out = {"people": len(rows)}
     for name, choose in pick.items():
         errors = [turn_error(r[f"{choose(r)}_yaw"], r["true_yaw"]) for r in rows]
