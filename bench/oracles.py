@@ -55,8 +55,8 @@ from relightcli.geometry.body_model import LANDMARK_NAMES  # noqa: E402
 from relightcli.pipeline import RelightOptions, predict_scene  # noqa: E402
 from relightcli.stages.frame import Models, unit  # noqa: E402
 
-ROWS = ("ours", "true mask", "true body", "true 3D landmarks", "true normals", "true depth", "true geometry", "true light", "true light, net level",
-        "true albedo", "true shading")
+ROWS = ("ours", "true mask", "true body", "true 3D landmarks", "true normals", "true depth", "true geometry",
+        "true light", "true light, net level", "true albedo", "true shading")
 KEYS = ("relit", "albedo", "shading", "normal_deg")
 
 
@@ -117,10 +117,11 @@ def with_true_body(body_stage, meta: dict, rect):
     from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 
     body = naked_body(meta["person"]["seed"], meta["person"]["split"])
+    body_vertices = int(body.faces.max()) + 1  # the helpers' vertices after them: no face uses them
 
     def stage_body(frame, options, models):
         body_stage(frame, options, models)
-        vertices = true_body_in_crop(body, meta, rect, frame.box, frame.image.shape[1])
+        vertices = true_body_in_crop(body, meta, rect, frame.box, frame.image.shape[1])[:body_vertices]
         frame.bodies = [BodyFit(shape=None, rotations=None, translation=None, scale=float("nan"),
                                 vertices=vertices, residual_px=0.0, converged=True, reason="true body")]
 
@@ -133,7 +134,8 @@ def with_true_body(body_stage, meta: dict, rect):
 
 def with_true_world(body_stage, meta: dict):
     """The body stage fitted to the first person's BlazePose keypoints and the true body's world
-    landmarks (true_world_landmarks) in place of BlazePose's."""
+    landmarks (true_world_landmarks) in place of BlazePose's, its image landmarks' depths made
+    the true ones too."""
     world = true_world_landmarks(naked_body(meta["person"]["seed"], meta["person"]["split"]), meta)
 
     def stage(frame, options, models):
