@@ -137,6 +137,19 @@ def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_worl
     }
 
 
+def each_scene(scenes: str, measure) -> list:
+    """measure(folder) -> row for every eval scene folder, each row printed as it comes; a scene
+    where nobody is found is a row with `skipped`, counted and left out of the means."""
+    rows = []
+    for folder in find_scenes(scenes):
+        try:
+            rows.append(measure(folder))
+        except RelightError as error:
+            rows.append({"scene": folder.name, "skipped": str(error)})
+        print({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
+    return rows
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("scenes", help="eval scene folders (python -m export.factory.eval_scenes)")
@@ -147,13 +160,8 @@ def main() -> int:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     data, models = dataset.open_dataset(args.factory), Models(2)
-    rows = []
-    for folder in find_scenes(args.scenes):
-        try:
-            rows.append(measure(folder, data, args.split, args.use_gt_mask, models, args.true_world))
-        except RelightError as error:  # no person found: counted, left out of the means
-            rows.append({"scene": folder.name, "skipped": str(error)})
-        print({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
+    rows = each_scene(args.scenes, lambda folder: measure(folder, data, args.split, args.use_gt_mask, models,
+                                                          args.true_world))
     keys = ("2d_cm", "3d_cm", "depth_cm", "bone_deg", "facing_deg", "yaw_deg")
     fitted = [r for r in rows if "skipped" not in r]
     summary = {k: float(np.mean([r[k] for r in fitted])) for k in keys} if fitted else {}

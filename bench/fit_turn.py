@@ -33,8 +33,7 @@ import bench_fit_renders as fit_bench  # noqa: E402
 
 from export.factory import dataset  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
-from relightcli.errors import RelightError  # noqa: E402
-from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
+from relightcli.evaluate import load_scene  # noqa: E402
 from relightcli.geometry.body_fit import TURN_WITNESS_MIN, blazepose_world_to_model  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
@@ -133,13 +132,8 @@ def main() -> int:
     parser.add_argument("--split", default="val")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
-    data, models, rows = dataset.open_dataset(args.factory), Models(2), []
-    for folder in find_scenes(args.scenes):
-        try:
-            rows.append(measure(folder, data, args.split, models))
-        except RelightError as error:
-            rows.append({"scene": folder.name, "skipped": str(error)})
-        print({k: round(v, 2) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
+    data, models = dataset.open_dataset(args.factory), Models(2)
+    rows = fit_bench.each_scene(args.scenes, lambda folder: measure(folder, data, args.split, models))
     result = summary(rows)
     print(json.dumps(result, indent=1))
     if args.out:
