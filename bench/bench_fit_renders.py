@@ -15,8 +15,12 @@ joints are compared with the true ones:
             forearms, thighs, shins): what the body's normals inherit
   facing deg  the torso's facing direction (hips and shoulders) fitted vs true: yaw and pitch
   yaw deg   the same direction's turn about the camera's vertical axis alone
+  limbs     of the 8 true limb bones, how many the product keeps: at least 80% of the points
+            along a bone's middle inside its mask (`limbs_mask`) and inside what its mesh
+            covers (`limbs_mesh`); a scene where nobody is found keeps none
 
-Scenes where nobody is found or the fit does not converge are counted and left out.
+Scenes where nobody is found or the fit does not converge are counted and left out of the fit's
+means (not of the limbs').
 `--true-world`: BlazePose's world landmarks replaced by the true body's (bench/oracles.py's
 `true 3D landmarks`), what the fit makes of a BlazePose without depth noise.
 """
@@ -54,6 +58,8 @@ BONES = tuple((f"{a}.{s}", f"{b}.{s}") for a, b in (("upperarm01", "lowerarm01")
                                                      ("upperleg01", "lowerleg01"), ("lowerleg01", "foot"))
               for s in "LR")
 HIPS, SHOULDERS = ("upperleg01.L", "upperleg01.R"), ("upperarm01.L", "upperarm01.R")
+# A limb bone is kept where this share of the points along its middle is inside
+LIMB_POINTS, LIMB_KEPT = np.linspace(0.1, 0.9, 9), 0.8
 
 
 def facing(joints: dict) -> np.ndarray:
@@ -83,6 +89,25 @@ def true_joints(data, split: str, sample_id: str) -> tuple[dict, dict, np.ndarra
     rect = data.load_raw(split, sample_id, "rect").astype(np.float64)
     pixels = world_to_pixel(camera, rect, int(meta["settings"]["resolution"]))
     return ({n: camera[names.index(n)] for n in MAIN}, {n: pixels[names.index(n)] for n in MAIN}, rect)
+
+
+def share_inside(mask: np.ndarray, points: np.ndarray) -> float:
+    """The share of `points` (N, 2) (col, row) that fall on True pixels of `mask` (H, W)."""
+    cols, rows = np.floor(points).astype(int).T
+    ok = (cols >= 0) & (cols < mask.shape[1]) & (rows >= 0) & (rows < mask.shape[0])
+    return float(np.mean(ok & mask[np.clip(rows, 0, mask.shape[0] - 1), np.clip(cols, 0, mask.shape[1] - 1)]))
+
+
+def limbs_kept(frame, truth_px: dict) -> dict:
+    """How many of the 8 true limb bones (photo pixels) lie inside the product's mask and
+    inside what its mesh covers (the crop's pixels)."""
+    box, covered = frame.box, frame.hits.mask
+    kept = {"limbs_mask": 0, "limbs_mesh": 0}
+    for a, b in BONES:
+        points = truth_px[a] + LIMB_POINTS[:, None] * (truth_px[b] - truth_px[a])
+        kept["limbs_mask"] += share_inside(frame.mask > 0.5, points) >= LIMB_KEPT
+        kept["limbs_mesh"] += share_inside(covered, (points - [box.x0, box.y0]) / box.scale) >= LIMB_KEPT
+    return kept
 
 
 def fitted_joints(frame, models) -> tuple[dict, dict] | None:
@@ -118,9 +143,10 @@ def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_worl
                               load_envmap(scene.target_path), options, ItemReport(str(folder)), models)
     finally:
         stages.STAGES["body"] = body_stage
+    limbs = limbs_kept(frame, truth_px)
     fitted = fitted_joints(frame, models)
     if fitted is None:
-        return {"scene": folder.name, "skipped": "no converged fit"}
+        return {"scene": folder.name, "skipped": "no converged fit", **limbs}
     fit_m, fit_px = fitted
     metres_per_px = (rect[1] - rect[0]) / frame.image.shape[1]
     centre = lambda j: {n: v - (j[HIPS[0]] + j[HIPS[1]]) / 2 for n, v in j.items()}  # noqa: E731
@@ -133,7 +159,7 @@ def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_worl
         "bone_deg": float(np.mean([angle_deg(fm[b] - fm[a], tm[b] - tm[a]) for a, b in BONES])),
         "facing_deg": angle_deg(facing(fm), facing(tm)),
         "yaw_deg": abs((yaw_deg(facing(fm)) - yaw_deg(facing(tm)) + 180.0) % 360.0 - 180.0),
-        "true_yaw_deg": yaw_deg(facing(tm)), "fit_yaw_deg": yaw_deg(facing(fm)),
+        "true_yaw_deg": yaw_deg(facing(tm)), "fit_yaw_deg": yaw_deg(facing(fm)), **limbs,
     }
 
 
@@ -167,6 +193,9 @@ def main() -> int:
     summary = {k: float(np.mean([r[k] for r in fitted])) for k in keys} if fitted else {}
     if fitted:  # one landmark failure (a 100-degree flip) moves the mean by 5 degrees
         summary["yaw_deg_median"] = float(np.median([r["yaw_deg"] for r in fitted]))
+    for key in ("limbs_mask", "limbs_mesh"):  # nobody found: no limb kept
+        summary[f"{key}_share"] = float(np.mean([r.get(key, 0) for r in rows]) / len(BONES))
+    summary["all_limbs_kept"] = sum(r.get("limbs_mask", 0) == r.get("limbs_mesh", 0) == len(BONES) for r in rows)
     summary.update(scenes=len(rows), fitted=len(fitted))
     print(" ".join(f"{k} {v:.2f}" if isinstance(v, float) else f"{k} {v}" for k, v in summary.items()))
     if args.out:
