@@ -97,6 +97,27 @@ def test_a_tpose_keeps_both_hands(nets):
     assert abs(cols[0] - true_cols[0]) <= 0.05 * span and abs(cols[-1] - true_cols[-1]) <= 0.05 * span
 
 
+@pytest.mark.parametrize("photo, annotation", [
+    (REPO / "examples" / "skier.jpg", REPO / "examples" / "skier_mask.png"),
+    (DATA / "kick_render.png", DATA / "kick_render_mask.png"),  # the raised leg's foot
+])
+def test_the_mirrored_crop_segmentation_keeps_more_of_the_person(nets, monkeypatch, photo, annotation):
+    """The segmentation of the crop's mirror image, mirrored back, joins the crop's own
+    (pose.MIRRORED_SEGMENTATION): the found mask covers more of the person without taking in
+    more of the background than it adds of the person."""
+    from relightcli.nets import pose
+
+    true_mask, image = truth(annotation), srgb(photo)
+    masks = {}
+    for mirrored in (False, True):
+        monkeypatch.setattr(pose, "MIRRORED_SEGMENTATION", mirrored)
+        masks[mirrored] = people_mask([p for p in find_people(image, *nets) if p.found])
+    covered = {k: (m & true_mask).sum() / true_mask.sum() for k, m in masks.items()}
+    assert covered[True] > covered[False] + 0.015
+    assert iou(masks[True], true_mask) > iou(masks[False], true_mask)
+    assert masks[True][masks[False]].all()  # a union: nothing the crop's own segmentation found is lost
+
+
 def test_a_person_the_detector_misses_is_found_in_the_whole_photo(nets, tmp_path, capsys):
     """BlazePose's detector finds nobody in this T-posed render; the landmark net shown the
     whole photo finds the person, and the mask follows its segmentation."""

@@ -22,6 +22,7 @@ from relightcli.nets.blaze import (
     Detection,
     RegionNet,
     RotatedRect,
+    crop_rect,
     crop_to_photo,
     decode_detections,
     letterbox,
@@ -45,6 +46,10 @@ WEAK_DETECTION_SCORE = 0.6
 WEAK_DETECTION_PRESENCE = 0.88
 DUPLICATE_IOU = 0.5         # two detections whose people overlap this much are one person
 ROI_SCALE = 1.25            # the crop around the keypoints' square
+# A found person's segmentation is the union of the net's on its crop and on the crop's mirror
+# image: a limb the net misplaces drops out of one of the two more often than of both
+# (python bench/bench_fit_renders.py, own mask: see docs/RESULTS.md, "Every limb kept?")
+MIRRORED_SEGMENTATION = True
 BODY_LANDMARKS = 33         # of 39: the last 6 are auxiliary (ROI keypoints)
 HIP_CENTRE, ROI_EDGE = 33, 34  # the auxiliary landmarks that place the next crop
 
@@ -128,6 +133,14 @@ class PoseLandmarker(RegionNet):
         # the presence output is already a probability (a sigmoid inside the graph)
         return Pose(rect, float(out["presence"][0, 0]), landmarks[:BODY_LANDMARKS],
                     world[:BODY_LANDMARKS], mask, next_rect)
+
+    def mirrored_segmentation(self, image: np.ndarray, rect: RotatedRect) -> np.ndarray:
+        """The person's probability (H, W) float32 in the photo as the net segments the mirror
+        image of the crop `rect` of `image`, mirrored back."""
+        crop = np.ascontiguousarray(crop_rect(image, rect, self.crop_size)[:, ::-1])
+        out = self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})
+        segmentation = sigmoid(out["segmentation"][0, :, ::-1, 0]).astype(np.float32)
+        return paste_crop(segmentation, rect, *image.shape[:2])
 
 
 @dataclass
@@ -224,6 +237,8 @@ def _people(image, detections, landmarker, refine, weak_needs=MIN_PRESENCE) -> l
             pose = second if second.presence > pose.presence else pose
         weak = detection.score < WEAK_DETECTION_SCORE
         person = Person(detection, pose, weak_needs if weak else MIN_PRESENCE)
+        if person.found and MIRRORED_SEGMENTATION:
+            pose.mask = np.maximum(pose.mask, landmarker.mirrored_segmentation(image, pose.rect))
         if person.found and any(_mask_iou(person, other) > DUPLICATE_IOU for other in people if other.found):
             continue
         people.append(person)

@@ -66,9 +66,10 @@ MASK_FLOOR = 0.5 / 255  # a predicted mask below this is 0 (stage_mask)
 
 def stage_mask(frame: Frame, options, models: Models) -> None:
     """The person mask when the input brought none: the union of the people's segmentations
-    (soft, the hair's edge included), or a portrait's selfie segmentation, its edges pulled to
-    the photo's by a guided filter in the crop around everyone (compose.snap_mask). No person:
-    the item fails, nothing is written.
+    (soft, the hair's edge included; each the landmark net's on the person's crop and on its
+    mirror image, relightcli.nets.pose.MIRRORED_SEGMENTATION), or a portrait's selfie
+    segmentation, its edges pulled to the photo's by a guided filter in the crop around
+    everyone (compose.snap_mask). No person: the item fails, nothing is written.
 
     Measured (python bench/mask_iou.py, mean / worst IoU with the true mask): on the 17 of 20
     validation scenes where a person is found, 0.938 / 0.826 raw, 0.942 / 0.830 with the
