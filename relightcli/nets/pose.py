@@ -238,11 +238,16 @@ def _people(image, detections, landmarker, refine, weak_needs=MIN_PRESENCE) -> l
         weak = detection.score < WEAK_DETECTION_SCORE
         person = Person(detection, pose, weak_needs if weak else MIN_PRESENCE)
         if person.found and MIRRORED_SEGMENTATION:
-            pose.mask = np.maximum(pose.mask, landmarker.mirrored_segmentation(image, pose.rect))
+            pose.mask = joined_segmentation(pose.mask, landmarker.mirrored_segmentation(image, pose.rect))
         if person.found and any(_mask_iou(person, other) > DUPLICATE_IOU for other in people if other.found):
             continue
         people.append(person)
     return people
+
+
+def joined_segmentation(own: np.ndarray, mirrored: np.ndarray) -> np.ndarray:
+    """A person's probability (H, W) from the net's segmentation of the crop and of its mirror."""
+    return np.maximum(own, mirrored)
 
 
 def _mask_iou(a: Person, b: Person) -> float:
