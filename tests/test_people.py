@@ -101,21 +101,35 @@ def test_a_tpose_keeps_both_hands(nets):
     (REPO / "examples" / "skier.jpg", REPO / "examples" / "skier_mask.png"),
     (DATA / "kick_render.png", DATA / "kick_render_mask.png"),  # the raised leg's foot
 ])
-def test_the_mirrored_crop_segmentation_keeps_more_of_the_person(nets, monkeypatch, photo, annotation):
+def test_the_mirrored_crop_segmentation_keeps_more_of_the_person(nets, photo, annotation):
     """The segmentation of the crop's mirror image, mirrored back, joins the crop's own
-    (pose.MIRRORED_SEGMENTATION): the found mask covers more of the person without taking in
+    (find_people's `mirrored`): the found mask covers more of the person without taking in
     more of the background than it adds of the person."""
-    from relightcli.nets import pose
-
     true_mask, image = truth(annotation), srgb(photo)
-    masks = {}
-    for mirrored in (False, True):
-        monkeypatch.setattr(pose, "MIRRORED_SEGMENTATION", mirrored)
-        masks[mirrored] = people_mask([p for p in find_people(image, *nets) if p.found])
+    masks = {mirrored: people_mask([p for p in find_people(image, *nets, mirrored=mirrored) if p.found])
+             for mirrored in (False, True)}
     covered = {k: (m & true_mask).sum() / true_mask.sum() for k, m in masks.items()}
     assert covered[True] > covered[False] + 0.015
     assert iou(masks[True], true_mask) > iou(masks[False], true_mask)
     assert masks[True][masks[False]].all()  # a union: nothing the crop's own segmentation found is lost
+
+
+def test_the_mirrored_segmentation_runs_only_when_the_photo_brings_no_mask(monkeypatch):
+    from relightcli.io.images import srgb_to_linear
+    from relightcli.stages.frame import Frame, Models
+    from relightcli.stages.people import stage_people
+
+    calls = []
+    segment = PoseLandmarker.mirrored_segmentation
+    monkeypatch.setattr(PoseLandmarker, "mirrored_segmentation",
+                        lambda self, image, rect: calls.append(rect) or segment(self, image, rect))
+    photo = srgb_to_linear(srgb(REPO / "examples" / "skier.jpg"))
+    models, env = Models(2), np.zeros((8, 16, 3), np.float32)
+    for mask, expected in ((truth(REPO / "examples" / "skier_mask.png").astype(np.float32), 0), (None, 1)):
+        calls.clear()
+        frame = Frame(image=photo, mask=mask, env=env)
+        stage_people(frame, None, models)
+        assert len(frame.people) == 1 and len(calls) == expected
 
 
 def test_a_person_the_detector_misses_is_found_in_the_whole_photo(nets, tmp_path, capsys):
