@@ -186,10 +186,11 @@ def find_people(image: np.ndarray, detector: PersonDetector, landmarker: PoseLan
     "people" in views of the HDRIs, one is weak (0.54, presence 0.97: still taken).
 
     With `mirrored`, each found person's segmentation is joined with the net's on the mirror
-    image of the crop (joined_segmentation): a limb the net misplaces drops out of one of the two
-    more often than of both (own mask, 60 validation people: 46 -> 51 with every limb kept,
-    relit +0.13 dB; docs/RESULTS.md, "Every limb kept?"). A caller bringing its own mask has no
-    use for it."""
+    image of the crop, and with the other refinement pass's when that one saw a person too
+    (joined_segmentation): a limb the net misplaces drops out of one view more often than of
+    all (own mask, 60 validation people: 46 -> 51 with every limb kept, relit +0.13 dB for the
+    mirror, +0.04 more for the other pass; docs/RESULTS.md, "Every limb kept?"). A caller
+    bringing its own mask has no use for them."""
     return _people(image, detector.detect(image), landmarker, refine, WEAK_DETECTION_PRESENCE, mirrored)
 
 
@@ -234,23 +235,26 @@ def _people(image, detections, landmarker, refine, weak_needs=MIN_PRESENCE,
     people = []
     for detection in detections:
         rect = rect_from_keypoints(detection.keypoints[0], detection.keypoints[1], np.pi / 2, ROI_SCALE)
-        pose = landmarker.landmarks(image, rect)
+        pose = first = landmarker.landmarks(image, rect)
         if refine:  # the crop from the detector's keypoints may be off by so much that its
             second = landmarker.landmarks(image, pose.next_rect)  # presence is low: judge the better one
             pose = second if second.presence > pose.presence else pose
         weak = detection.score < WEAK_DETECTION_SCORE
         person = Person(detection, pose, weak_needs if weak else MIN_PRESENCE)
         if person.found and mirrored:
-            pose.mask = joined_segmentation(pose.mask, landmarker.mirrored_segmentation(image, pose.rect))
+            views = [landmarker.mirrored_segmentation(image, pose.rect)]
+            if first is not pose and first.presence >= MIN_PRESENCE:  # the other crop's, already made
+                views.append(first.mask)
+            pose.mask = joined_segmentation(pose.mask, *views)
         if person.found and any(_mask_iou(person, other) > DUPLICATE_IOU for other in people if other.found):
             continue
         people.append(person)
     return people
 
 
-def joined_segmentation(own: np.ndarray, mirrored: np.ndarray) -> np.ndarray:
-    """A person's probability (H, W) from the net's segmentation of the crop and of its mirror."""
-    return np.maximum(own, mirrored)
+def joined_segmentation(own: np.ndarray, *others: np.ndarray) -> np.ndarray:
+    """A person's probability (H, W): the largest of the net's segmentations of its views."""
+    return np.maximum.reduce([own, *others])
 
 
 def _mask_iou(a: Person, b: Person) -> float:
