@@ -103,10 +103,10 @@ def test_a_tpose_keeps_both_hands(nets):
 ])
 def test_the_mirrored_crop_segmentation_keeps_more_of_the_person(nets, photo, annotation):
     """The segmentation of the crop's mirror image, mirrored back, joins the crop's own
-    (find_people's `mirrored`): the found mask covers more of the person without taking in
+    (find_people's `join_views`): the found mask covers more of the person without taking in
     more of the background than it adds of the person."""
     true_mask, image = truth(annotation), srgb(photo)
-    masks = {mirrored: people_mask([p for p in find_people(image, *nets, mirrored=mirrored) if p.found])
+    masks = {mirrored: people_mask([p for p in find_people(image, *nets, join_views=mirrored) if p.found])
              for mirrored in (False, True)}
     covered = {k: (m & true_mask).sum() / true_mask.sum() for k, m in masks.items()}
     assert covered[True] > covered[False] + 0.015

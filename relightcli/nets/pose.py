@@ -164,7 +164,7 @@ class Person:
 
 
 def find_people(image: np.ndarray, detector: PersonDetector, landmarker: PoseLandmarker,
-                refine: bool = True, mirrored: bool = True) -> list[Person]:
+                refine: bool = True, join_views: bool = True) -> list[Person]:
     """Every person the detector finds in `image` (H, W, 3) sRGB in [0, 1], best first, each
     with its pose (None when the landmark net says the crop holds no person; kept for the
     report). With `refine`, the landmarks run a second time in the crop their own auxiliary
@@ -185,23 +185,23 @@ def find_people(image: np.ndarray, detector: PersonDetector, landmarker: PoseLan
     would have turned down one real person more (presence 0.55, score 0.68). Of the 6 false
     "people" in views of the HDRIs, one is weak (0.54, presence 0.97: still taken).
 
-    With `mirrored`, each found person's segmentation is joined with the net's on the mirror
+    With `join_views`, each found person's segmentation is joined with the net's on the mirror
     image of the crop, and with the other refinement pass's when that one saw a person too
     (joined_segmentation): a limb the net misplaces drops out of one view more often than of
     all (own mask, 60 validation people: 46 -> 51 with every limb kept, relit +0.13 dB for the
     mirror, +0.04 more for the other pass; docs/RESULTS.md, "Every limb kept?"). A caller
     bringing its own mask has no use for them."""
-    return _people(image, detector.detect(image), landmarker, refine, WEAK_DETECTION_PRESENCE, mirrored)
+    return _people(image, detector.detect(image), landmarker, refine, WEAK_DETECTION_PRESENCE, join_views)
 
 
 def find_person_in_mask(image: np.ndarray, mask: np.ndarray, landmarker: PoseLandmarker,
-                        refine: bool = True, mirrored: bool = False) -> Person | None:
+                        refine: bool = True, join_views: bool = False) -> Person | None:
     """The person a mask (h, w) in [0, 1] of `image` outlines, when the detector found none:
     the landmark net run in the square around the mask's bounding box (as the detector's
     keypoints would place it: centred, half side the box's larger half extent x ROI_SCALE,
     upright), then, with `refine`, in the crop its own landmarks place. None for an empty mask;
     the person's `found` says whether the landmark net sees a person there. The detection is a
-    stand-in: the mask's box, score 0. `mirrored` as in find_people."""
+    stand-in: the mask's box, score 0. `join_views` as in find_people."""
     rows, cols = np.nonzero(mask > 0.5)
     if rows.size == 0:
         return None
@@ -209,7 +209,7 @@ def find_person_in_mask(image: np.ndarray, mask: np.ndarray, landmarker: PoseLan
     centre = np.array([(x0 + x1) / 2.0, (y0 + y1) / 2.0])
     edge = centre - np.array([0.0, max(x1 - x0, y1 - y0) / 2.0])  # straight up: the crop upright
     stand_in = Detection(np.array([x0, y0, x1, y1], np.float64), np.stack([centre, edge]), 0.0)
-    return _people(image, [stand_in], landmarker, refine, mirrored=mirrored)[0]
+    return _people(image, [stand_in], landmarker, refine, join_views=join_views)[0]
 
 
 # The landmark net's presence a person found in the whole photo needs (find_person_in_photo).
@@ -227,11 +227,11 @@ def find_person_in_photo(image: np.ndarray, landmarker: PoseLandmarker, refine: 
     person only at a presence of WHOLE_PHOTO_PRESENCE (over a landscape the net's presence
     passes MIN_PRESENCE in one view of five)."""
     height, width = image.shape[:2]
-    return find_person_in_mask(image, np.ones((height, width), np.float32), landmarker, refine, mirrored=True)
+    return find_person_in_mask(image, np.ones((height, width), np.float32), landmarker, refine, join_views=True)
 
 
 def _people(image, detections, landmarker, refine, weak_needs=MIN_PRESENCE,
-            mirrored: bool = True) -> list[Person]:
+            join_views: bool = True) -> list[Person]:
     people = []
     for detection in detections:
         rect = rect_from_keypoints(detection.keypoints[0], detection.keypoints[1], np.pi / 2, ROI_SCALE)
@@ -241,7 +241,7 @@ def _people(image, detections, landmarker, refine, weak_needs=MIN_PRESENCE,
             pose = second if second.presence > pose.presence else pose
         weak = detection.score < WEAK_DETECTION_SCORE
         person = Person(detection, pose, weak_needs if weak else MIN_PRESENCE)
-        if person.found and mirrored:
+        if person.found and join_views:
             views = [landmarker.mirrored_segmentation(image, pose.rect)]
             if first is not pose and first.presence >= MIN_PRESENCE:  # the other crop's, already made
                 views.append(first.mask)

@@ -30,7 +30,7 @@ def stage_people(frame: Frame, options, models: Models) -> None:
     frame.view = frame.view or PerceptionView.of(frame.image)
     srgb, scale = frame.view.image, frame.view.scale
     people = find_people(srgb, models.get("person_detector"), models.get("pose_landmarks"),
-                         mirrored=frame.mask is None)  # an input mask: no use for the mirror's
+                         join_views=frame.mask is None)  # an input mask: no use for more views
     frame.people = [p for p in people if p.found]
     frame.notes["people"] = {"found": [p.summary(scale) for p in frame.people],
                              "turned_down": [p.summary(scale) for p in people if not p.found]}
@@ -67,10 +67,10 @@ MASK_FLOOR = 0.5 / 255  # a predicted mask below this is 0 (stage_mask)
 
 def stage_mask(frame: Frame, options, models: Models) -> None:
     """The person mask when the input brought none: the union of the people's segmentations
-    (soft, the hair's edge included; each the landmark net's on the person's crop and on its
-    mirror image, relightcli.nets.pose.find_people), or a portrait's selfie
-    segmentation, its edges pulled to the photo's by a guided filter in the crop around
-    everyone (compose.snap_mask). No person: the item fails, nothing is written.
+    (soft, the hair's edge included; each the landmark net's over its views of the person: the
+    crop, its mirror image, the other refinement pass's crop; relightcli.nets.pose.find_people),
+    or a portrait's selfie segmentation, its edges pulled to the photo's by a guided filter in
+    the crop around everyone (compose.snap_mask). No person: the item fails, nothing is written.
 
     Measured (python bench/mask_iou.py, mean / worst IoU with the true mask): on the 17 of 20
     validation scenes where a person is found, 0.938 / 0.826 raw, 0.942 / 0.830 with the
