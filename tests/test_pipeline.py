@@ -147,6 +147,10 @@ class StandInModels(Models):
         mask = cv2.GaussianBlur(((x - cx) ** 2 + (y - cy) ** 2 < radius ** 2).astype(np.float32), (0, 0), 2.0)
         return Pose(rect, 1.0, np.zeros((33, 5)), np.zeros((33, 3)), mask, rect)
 
+    def mirrored_segmentation(self, image, rect):
+        """The net's segmentation of the crop's mirror image: the same disc."""
+        return StandInModels.landmarks(self, image, rect).mask
+
     def predict(self, image, normal=None):
         size = image.shape[0]
         if normal is not None:  # delight
