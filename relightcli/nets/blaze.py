@@ -221,7 +221,9 @@ class RegionNet(ModelSession):
         """The side of the square input, (1, S, S, 3)."""
         return int(self.entry.inputs[0].shape[1])
 
-    def run_region(self, image: np.ndarray, rect: RotatedRect) -> dict[str, np.ndarray]:
-        """The net's outputs on `rect` of `image` (H, W, 3) sRGB in [0, 1]."""
+    def run_region(self, image: np.ndarray, rect: RotatedRect, mirror: bool = False) -> dict[str, np.ndarray]:
+        """The net's outputs on `rect` of `image` (H, W, 3) sRGB in [0, 1] (with `mirror`, on
+        the crop's mirror image: the outputs are the mirror's)."""
         crop = crop_rect(image, rect, self.crop_size)
+        crop = np.ascontiguousarray(crop[:, ::-1]) if mirror else crop
         return self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})

@@ -22,7 +22,6 @@ from relightcli.nets.blaze import (
     Detection,
     RegionNet,
     RotatedRect,
-    crop_rect,
     crop_to_photo,
     decode_detections,
     letterbox,
@@ -133,8 +132,7 @@ class PoseLandmarker(RegionNet):
     def mirrored_segmentation(self, image: np.ndarray, rect: RotatedRect) -> np.ndarray:
         """The person's probability (H, W) float32 in the photo as the net segments the mirror
         image of the crop `rect` of `image`, mirrored back."""
-        crop = np.ascontiguousarray(crop_rect(image, rect, self.crop_size)[:, ::-1])
-        out = self.run({"image": net_input(crop, self.entry.config.get("value_range", (0.0, 1.0)))})
+        out = self.run_region(image, rect, mirror=True)
         segmentation = sigmoid(out["segmentation"][0, :, ::-1, 0]).astype(np.float32)
         return paste_crop(segmentation, rect, *image.shape[:2])
 
