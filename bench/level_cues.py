@@ -81,7 +81,7 @@ class QuadraticRidge:
         i, j = np.triu_indices(z.shape[1])
         return np.column_stack([z, z[:, i] * z[:, j], np.ones(len(z))])
 
-    def fit(self, x: np.ndarray, y: np.ndarray) -> "QuadraticRidge":
+    def fit(self, x: np.ndarray, y: np.ndarray) -> QuadraticRidge:
         self.mean, self.scale = x.mean(axis=0), x.std(axis=0) + 1e-9
         a = self.design(x)
         penalty = self.weight * np.eye(a.shape[1])
@@ -162,7 +162,8 @@ def capture(scenes: str, factory: str, split: str, out: Path, resolution: int) -
             if found and frame.view is not None:
                 points = found[0].pose.landmarks[:11, :2] / np.asarray(frame.view.scale)
                 face = ((points - [frame.box.x0, frame.box.y0]) / frame.box.scale * (SIDE / resolution)).astype(np.float32)
-            at = lambda image: small(compose.crop_square(np.asarray(image, np.float32), frame.box))  # noqa: E731
+            box = frame.box
+            at = lambda image, box=box: small(compose.crop_square(np.asarray(image, np.float32), box))  # noqa: E731
             person = json.loads((folder / "scene.json").read_text())["spec"]["person_seed"]
             np.savez_compressed(out / f"{folder.name}.npz", ratio=small(kept["ratio"]), net=small(kept["net"]),
                                 mask=small(kept["mask"]), face_points=face, true_albedo=at(truth["albedo"]),
