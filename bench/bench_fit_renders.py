@@ -83,7 +83,7 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def true_joints(data, split: str, sample_id: str) -> tuple[dict, dict, np.ndarray]:
     """(metres: name -> camera-frame (3,), pixels: name -> (col, row), rect) of a sample."""
     meta = data.meta(split, sample_id)
-    person = build_person(meta["person"]["seed"], split)
+    person = build_person(meta["person"]["seed"], split, meta["person"].get("pose_variety", 0.0))
     names = base_model().skeleton.names
     camera = camera_vertices(person.joints, meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
     rect = data.load_raw(split, sample_id, "rect").astype(np.float64)

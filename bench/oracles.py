@@ -116,7 +116,7 @@ def with_true_body(body_stage, meta: dict, rect):
     from relightcli.geometry.body_fit import BodyFit
     from relightcli.geometry.body_maps import bodies_scene, render_body_maps
 
-    body = naked_body(meta["person"]["seed"], meta["person"]["split"])
+    body = naked_body(meta["person"]["seed"], meta["person"]["split"], meta["person"].get("pose_variety", 0.0))
     body_vertices = int(body.faces.max()) + 1  # the helpers' vertices after them: no face uses them
 
     def stage_body(frame, options, models):
@@ -136,7 +136,7 @@ def with_true_world(body_stage, meta: dict):
     """The body stage fitted to the first person's BlazePose keypoints and the true body's world
     landmarks (true_world_landmarks) in place of BlazePose's, its image landmarks' depths made
     the true ones too."""
-    world = true_world_landmarks(naked_body(meta["person"]["seed"], meta["person"]["split"]), meta)
+    world = true_world_landmarks(naked_body(meta["person"]["seed"], meta["person"]["split"], meta["person"].get("pose_variety", 0.0)), meta)
 
     def stage(frame, options, models):
         person = frame.people[0]

@@ -34,6 +34,7 @@ class GenerationConfig:
     sky_probability: float = lighting.SKY_PROBABILITY
     augment: bool = True
     yaw_offset_deg: float = 0.0
+    pose_variety: float = 0.0  # person.build_person: how far poses leave the catalogue's
 
 
 def parse_fractions(text: str | None) -> dict[str, float]:
@@ -91,7 +92,7 @@ def render_group(root, split: str, indices: list[int], config: GenerationConfig)
                                    sky_probability=config.sky_probability, augment=config.augment,
                                    yaw_offset_deg=config.yaw_offset_deg)
         if person is None:
-            person = build_person(spec.person_seed, split)
+            person = build_person(spec.person_seed, split, config.pose_variety)
         arrays, meta = render.render_sample(spec, person, config.settings)
         meta["dataset_seed"] = config.seed
         dataset.write_sample(root, split, spec.sample_id, arrays, meta)
@@ -159,7 +160,7 @@ def build_card(root, counts: dict[str, int], config: GenerationConfig, command: 
         "render_settings": config.settings.as_dict(),
         "samples_per_person": config.samples_per_person,
         "sky_probability": config.sky_probability, "augment": config.augment,
-        "yaw_offset_deg": config.yaw_offset_deg,
+        "yaw_offset_deg": config.yaw_offset_deg, "pose_variety": config.pose_variety,
         "camera": {"pitch_deg": scenes.PITCHES_DEG, "yaw_deg": scenes.YAWS_DEG,
                    "scale": scenes.SCALES, "frame_fill": scenes.FRAME_FILL,
                    "background_fov_deg": scenes.BACKGROUND_FOV_DEG},
@@ -197,6 +198,9 @@ def _arguments(argv):
     parser.add_argument("--no-augment", action="store_true", help="no noise/blur/colour jitter")
     parser.add_argument("--yaw-offset", type=float, default=0.0,
                         help="degrees added to every camera's yaw (180: the people from behind)")
+    parser.add_argument("--pose-variety", type=float, default=0.0,
+                        help="0-1: the share of limbs (and trunks) a pose takes from another pose of its "
+                             "split, as it is or mirrored, and the perturbations' scale (1 + this)")
     return parser.parse_args(argv)
 
 
@@ -212,7 +216,7 @@ def main(argv=None) -> int:
     config = GenerationConfig(seed=args.seed, settings=settings,
                               samples_per_person=args.samples_per_person,
                               sky_probability=args.sky_probability, augment=not args.no_augment,
-                              yaw_offset_deg=args.yaw_offset)
+                              yaw_offset_deg=args.yaw_offset, pose_variety=args.pose_variety)
     counts = split_counts(args.count, parse_fractions(args.splits))
     given = sys.argv[1:] if argv is None else argv
     command = "python -m export.factory.generate " + " ".join(given)

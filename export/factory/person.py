@@ -271,20 +271,25 @@ def _pose_parts(parts: list[_Part], base: BaseModel, shaped: np.ndarray, rotatio
     return posed, joints[0], joints
 
 
-def build_person(seed: int, split: str) -> Person:
-    """A random posed, clothed, textured person; the same (seed, split) gives the same person.
+def build_person(seed: int, split: str, pose_variety: float = 0.0) -> Person:
+    """A random posed, clothed, textured person; the same (seed, split, pose_variety) gives the
+    same person.
 
     split: "train", "val" or "test": pose, suit, shoes, hair and hat come from that split's list.
+    pose_variety: in [0, 1], how far the pose may leave its catalogue pose (mixed_pose); 0 keeps
+    the catalogue pose with small perturbations (the people of every dataset made before it).
     """
     _check_request(seed, split)
     base = base_model()
-    r_shape, r_pose, r_outfit, r_albedo = _streams(seed, split)
-    params, shaped, pose, rotations = _shape_and_pose(base, split, r_shape, r_pose)
+    r_shape, r_pose, r_outfit, r_albedo, r_mix = _streams(seed, split)
+    params, shaped, pose, rotations, mix = _shape_and_pose(base, split, r_shape, r_pose, r_mix, pose_variety)
     outfit = choose_outfit(r_outfit, split, params.gender)
     tone_t = float(r_albedo.random())
     metadata = {"seed": int(seed), "split": split, "shape": params.as_dict(),
                 "stature_m": shape.stature(shaped, np.unique(base.mesh.faces[base.body_faces])),
                 "pose": pose, "outfit": outfit, "skin_tone": tone_t, "patterns": {}}
+    if pose_variety > 0:
+        metadata.update(pose_variety=float(pose_variety), pose_mix=mix)
     skin = albedo.skin_texture(r_albedo, TILE, albedo.skin_tone(tone_t))
     garments, hidden = _outfit_parts(r_albedo, base, shaped, outfit, metadata)
     eyes, _ = _garment_part(EYES, base, shaped, 3, _eye_tile())
@@ -309,33 +314,99 @@ class NakedBody:
     transforms: np.ndarray
 
 
-def naked_body(seed: int, split: str) -> NakedBody:
+def naked_body(seed: int, split: str, pose_variety: float = 0.0) -> NakedBody:
     """The person's body under the clothes (bench/oracles.py's `true body`)."""
     _check_request(seed, split)
     base = base_model()
-    r_shape, r_pose, _, _ = _streams(seed, split)
-    _, shaped, _, rotations = _shape_and_pose(base, split, r_shape, r_pose)
+    r_shape, r_pose, _, _, r_mix = _streams(seed, split)
+    _, shaped, _, rotations, _ = _shape_and_pose(base, split, r_shape, r_pose, r_mix, pose_variety)
     heads, _ = base.skeleton.joint_positions(shaped)
     transforms = skinning.bone_transforms(base.skeleton, heads, rotations)
     joints = np.einsum("bij,bj->bi", transforms, np.c_[heads, np.ones(len(heads))])[:, :3]
     placed = transforms.copy()  # the clothed person's feet set y = 0
-    placed[:, :, 3] -= joints[0] - build_person(seed, split).joints[0]
+    placed[:, :, 3] -= joints[0] - build_person(seed, split, pose_variety).joints[0]
     vertices = skinning.skin_vertices(shaped, base.weights, placed)
     return NakedBody(vertices.astype(np.float32), base.mesh.faces[base.body_faces].astype(np.int32), shaped, placed)
 
 
 def _streams(seed: int, split: str) -> list[np.random.Generator]:
-    """The person's four random streams: shape, pose, outfit, albedo."""
-    streams = np.random.SeedSequence([int(seed), SPLITS.index(split)]).spawn(4)
+    """The person's five random streams: shape, pose, outfit, albedo, pose mixing (the first
+    four are what they were before the fifth was added: children of a SeedSequence depend on
+    their index only)."""
+    streams = np.random.SeedSequence([int(seed), SPLITS.index(split)]).spawn(5)
     return [np.random.default_rng(s) for s in streams]
 
 
-def _shape_and_pose(base: BaseModel, split: str, r_shape, r_pose) -> tuple:
-    """(shape params, shaped rest vertices, pose name, perturbed bone rotations)."""
+def _shape_and_pose(base: BaseModel, split: str, r_shape, r_pose, r_mix, pose_variety: float = 0.0) -> tuple:
+    """(shape params, shaped rest vertices, pose name, perturbed bone rotations, the mix)."""
     params, shaped = sample_body(r_shape, base)
     pose = str(r_pose.choice(splits()["pose"][split]))
-    rotations = skinning.perturb_rotations(pose_rotations(pose, base.skeleton), base.skeleton.names, r_pose)
-    return params, shaped, pose, rotations
+    rotations, mix = pose_rotations(pose, base.skeleton), {}
+    if pose_variety > 0:
+        rotations, mix = mixed_pose(rotations, split, base.skeleton, r_mix, pose_variety)
+    rotations = skinning.perturb_rotations(rotations, base.skeleton.names, r_pose, strength=1.0 + pose_variety)
+    return params, shaped, pose, rotations, mix
+
+
+# The body's parts a mixed pose takes from other poses of the split, by bone name (the root, which
+# lays a body down or stands it up, goes with the trunk)
+LIMB_GROUPS = {
+    "trunk": ("root", "spine", "neck", "head"),
+    "arm.L": ("clavicle.L", "shoulder", "upperarm", "lowerarm", "wrist", "metacarpal", "finger"),
+    "arm.R": ("clavicle.R", "shoulder", "upperarm", "lowerarm", "wrist", "metacarpal", "finger"),
+    "leg.L": ("pelvis.L", "upperleg", "lowerleg", "foot", "toe"),
+    "leg.R": ("pelvis.R", "upperleg", "lowerleg", "foot", "toe"),
+}
+# A left-right mirror in the mesh frame (x is the body's left-right axis)
+MIRROR = np.diag([-1.0, 1.0, 1.0])
+
+
+def limb_bones(group: str, names: tuple[str, ...]) -> np.ndarray:
+    """Indices of the bones of a LIMB_GROUPS group."""
+    side = group[-2:] if group != "trunk" else ""
+    prefixes = LIMB_GROUPS[group]
+    return np.array([k for k, name in enumerate(names) if name.startswith(prefixes) and name.endswith(side)
+                     and (group != "trunk" or not name.endswith((".L", ".R")))], dtype=int)
+
+
+def mirrored_pose(rotations: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """The pose's mirror image: each bone takes its other side's rotation, mirrored (the
+    rotations are in the mesh frame, so the mirror is M R M)."""
+    index = {name: k for k, name in enumerate(names)}
+    other = [index.get(name[:-1] + {"L": "R", "R": "L"}[name[-1]], k) if name.endswith((".L", ".R")) else k
+             for k, name in enumerate(names)]
+    return MIRROR @ rotations[other] @ MIRROR
+
+
+def mixed_pose(rotations: np.ndarray, split: str, skeleton, rng: np.random.Generator,
+               variety: float) -> tuple[np.ndarray, dict]:
+    """The catalogue pose's local rotations (B, 3, 3) with each limb group (LIMB_GROUPS) taken,
+    with probability `variety`, from another pose of the same split (never another split's:
+    the held-out poses stay held out), as it is or from that pose's mirror image. The legs hang
+    from the root, whose rotation the catalogue's poses undo in the spine and the pelvis (a pose
+    may turn its root half over), so a leg keeps its turn relative to the lowest spine bone of
+    its own pose, not to the root. Returns the rotations and {group: "pose" or "pose
+    (mirrored)"} for the groups replaced."""
+    names, poses = skeleton.names, splits()["pose"][split]
+    root, spine = names.index("root"), names.index("spine05")
+    sources, mix = {}, {}
+    for group in LIMB_GROUPS:
+        if rng.random() >= variety:
+            sources[group] = rotations
+            continue
+        donor, mirrored = str(rng.choice(poses)), bool(rng.random() < 0.5)
+        source = pose_rotations(donor, skeleton)
+        sources[group] = mirrored_pose(source, names) if mirrored else source
+        mix[group] = donor + (" (mirrored)" if mirrored else "")
+    out = rotations.copy()
+    for group, source in sources.items():
+        bones = limb_bones(group, names)
+        out[bones] = source[bones]
+    for side in "LR":
+        source, pelvis = sources[f"leg.{side}"], names.index(f"pelvis.{side}")
+        hips, source_hips = out[root] @ out[spine], source[root] @ source[spine]
+        out[pelvis] = out[root].T @ hips @ source_hips.T @ source[root] @ source[pelvis]
+    return out, mix
 
 
 def _assemble(parts, posed, root, face_mask, metadata, joints) -> Person:

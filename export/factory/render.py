@@ -245,5 +245,5 @@ def render_sample(spec: SceneSpec, person, settings: RenderSettings = RenderSett
 
 
 def _person_meta(person) -> dict:
-    keep = ("seed", "split", "pose", "outfit", "skin_tone", "hair_colour", "stature_m")
+    keep = ("seed", "split", "pose", "pose_variety", "pose_mix", "outfit", "skin_tone", "hair_colour", "stature_m")
     return {k: person.metadata[k] for k in keep if k in person.metadata}

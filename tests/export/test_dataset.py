@@ -152,6 +152,23 @@ def test_generate_cli_writes_a_card(tmp_path, makehuman_data):
     code = generate.main(["--out", str(tmp_path), "--count", "0", "--resolution", "32"])
     card = json.loads((tmp_path / dataset.CARD_NAME).read_text())
     assert code == 0 and card["resolution"] == 32 and card["format_version"] == dataset.FORMAT_VERSION
+    assert card["pose_variety"] == 0.0
+
+
+def test_mixed_poses_reach_the_samples(tmp_path, makehuman_data):
+    """--pose-variety goes to the card and to each sample's person, and the people mix poses
+    of their own split only."""
+    if not (lighting.hdri_dir() / "index.csv").is_file():
+        pytest.skip("shared HDRIs not found")
+    from export.factory.person import splits
+
+    code = generate.main(["--out", str(tmp_path), "--count", "1", "--splits", "test=1", "--resolution", "32",
+                          "--spp", "4", "--ao-spp", "2", "--target-error", "0", "--workers", "1",
+                          "--pose-variety", "1"])
+    data = dataset.open_dataset(tmp_path)
+    person = data.meta("test", "000000")["person"]
+    assert code == 0 and data.card["pose_variety"] == 1.0 and person["pose_variety"] == 1.0
+    assert {name.split(" ")[0] for name in person["pose_mix"].values()} <= set(splits()["pose"]["test"])
 
 
 def test_eval_scene_folder_loads_in_relight_eval(tiny, tmp_path):

@@ -107,3 +107,82 @@ def test_naked_body_lies_under_the_clothes(person):
     distance, _ = cKDTree(person.vertices).query(body.vertices[used])
     assert (distance < 1e-5).mean() > 0.5  # the skin the clothes leave bare is the same skin
     assert distance.max() < 0.1
+
+
+def test_pose_variety_zero_keeps_the_people_of_before(person):
+    """The fifth random stream (pose mixing) leaves the first four as they were: a
+    SeedSequence's children depend on their index alone."""
+    four = [np.random.default_rng(s).random(3) for s in np.random.SeedSequence([7, 0]).spawn(4)]
+    five = [np.random.default_rng(s).random(3) for s in np.random.SeedSequence([7, 0]).spawn(5)[:4]]
+    np.testing.assert_array_equal(four, five)
+    assert "pose_mix" not in person.metadata
+    np.testing.assert_array_equal(build_person(7, "train", 0.0).vertices, person.vertices)
+
+
+@pytest.mark.parametrize("split", ["train", "val"])
+def test_mixed_poses_stay_in_their_split(base, split):
+    from export.factory.person import LIMB_GROUPS
+
+    mixed = [build_person(seed, split, 1.0) for seed in range(4)]
+    for person in mixed:
+        donors = person.metadata["pose_mix"]
+        assert donors and set(donors) <= set(LIMB_GROUPS)
+        assert {name.split(" ")[0] for name in donors.values()} <= set(splits()["pose"][split])
+        # a whole body still: on the ground, every main joint inside it
+        v = person.vertices
+        assert v[:, 1].min() == pytest.approx(0.0, abs=1e-6) and 0.4 < v[:, 1].max() < 2.6
+    again = build_person(1, split, 1.0)
+    np.testing.assert_array_equal(again.vertices, mixed[1].vertices)
+    assert not np.array_equal(build_person(1, split).vertices, mixed[1].vertices)
+
+
+def test_a_mirrored_pose_mirrored_again_is_the_pose(base):
+    from export.factory.person import base_model, mirrored_pose, pose_rotations
+
+    names = base_model().skeleton.names
+    pose = pose_rotations("fight01", base_model().skeleton)
+    np.testing.assert_allclose(mirrored_pose(mirrored_pose(pose, names), names), pose, atol=1e-12)
+    once = mirrored_pose(pose, names)
+    left, right = names.index("upperarm01.L"), names.index("upperarm01.R")
+    # the left arm's turn is the right arm's, seen in a mirror: the same angle
+    angle = lambda r: np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))  # noqa: E731
+    assert angle(once[left]) == pytest.approx(angle(pose[right]))
+
+
+def test_a_leg_keeps_its_turn_against_the_hips_of_its_own_pose(base):
+    """gym01 is a handstand whose root turns the body half over and whose spine and pelvis turn
+    it back: a leg taken into a standing pose hangs down from the hips, not up."""
+    from export.factory.person import base_model, mixed_pose, pose_rotations
+
+    skeleton = base_model().skeleton
+    names = skeleton.names
+    standing = pose_rotations("standing01", skeleton)
+
+    class Donor:  # an rng that swaps the left leg alone in from gym01, unmirrored
+        draws = iter([0.9, 0.9, 0.9, 0.0, 0.9, 0.9])  # trunk, arm.L, arm.R, leg.L (mirror? no), leg.R
+
+        def random(self):
+            return next(self.draws)
+
+        def choice(self, poses):
+            return "gym01"
+
+    donor = Donor()
+    out, mix = mixed_pose(standing, "train", skeleton, donor, 0.5)
+    assert mix == {"leg.L": "gym01"}
+
+    def world(rotations, bone):  # the bone's turn in the mesh frame: its parents' and its own
+        turn, k = np.eye(3), names.index(bone)
+        chain = []
+        while k >= 0:
+            chain.append(k)
+            k = skeleton.parents[k]
+        for k in reversed(chain):
+            turn = turn @ rotations[k]
+        return turn
+
+    hips = lambda rotations: world(rotations, "spine05")  # noqa: E731
+    handstand = pose_rotations("gym01", skeleton)
+    # relative to the hips the thigh is turned as in the handstand
+    np.testing.assert_allclose(hips(out).T @ world(out, "upperleg01.L"),
+                               hips(handstand).T @ world(handstand, "upperleg01.L"), atol=1e-9)
