@@ -1,0 +1,30 @@
+"""bench/by_pose.py: a report's scenes grouped by pose, failures counted but not averaged."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import by_pose  # noqa: E402
+
+
+def scene(name, normal, shading, relit=18.0, albedo=19.0, error=None):
+    entry = {"scene": name, "error": error}
+    if error is None:
+        entry.update(normal={"deg": normal}, shading={"psnr": shading}, relit={"psnr": relit}, albedo={"psnr": albedo})
+    return entry
+
+
+def test_groups_by_pose_and_skips_failures(tmp_path):
+    for name, pose in (("a", "tpose"), ("b", "tpose"), ("c", "fly02"), ("d", "fly02")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "scene.json").write_text(json.dumps({"person": {"pose": pose}}))
+    report = {"per_scene": [scene("a", 10.0, 20.0), scene("b", 20.0, 22.0), scene("c", 40.0, 14.0),
+                            scene("d", None, None, error="nobody found")]}
+    out = by_pose.by_pose(report, tmp_path)
+    assert out["tpose"][:2] == (2, 2) and out["tpose"][2][:2] == pytest.approx([15.0, 21.0])
+    assert out["fly02"][:2] == (2, 1) and out["fly02"][2][:2] == pytest.approx([40.0, 14.0])
