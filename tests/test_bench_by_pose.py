@@ -28,3 +28,13 @@ def test_groups_by_pose_and_skips_failures(tmp_path):
     out = by_pose.by_pose(report, tmp_path)
     assert out["tpose"][:2] == (2, 2) and out["tpose"][2][:2] == pytest.approx([15.0, 21.0])
     assert out["fly02"][:2] == (2, 1) and out["fly02"][2][:2] == pytest.approx([40.0, 14.0])
+
+
+def test_reads_an_oracle_report_row_by_row(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "scene.json").write_text(json.dumps({"person": {"pose": "tpose"}}))
+    report = {"scenes": [{"scene": "a", "true mask": {"relit": 18.0, "albedo": 19.0, "shading": 20.0, "normal_deg": 17.0},
+                          "true albedo": {"relit": 23.0, "shading": 20.0, "normal_deg": 17.0, "albedo": None}}]}
+    assert by_pose.by_pose(report, tmp_path, "true mask")["tpose"] == (1, 1, [17.0, 20.0, 18.0, 19.0])
+    count, scored, means = by_pose.by_pose(report, tmp_path, "true albedo")["tpose"]
+    assert (count, scored, means[2]) == (1, 1, 23.0)
