@@ -20,7 +20,9 @@ its level is set (photo over the solved light's shading), the net's albedo, the 
 BlazePose landmarks and the truth cropped alike. `fit` trains the same regressor on the first
 folder's captures (the correction to the product's level) and scores the others: level RMS and
 the albedo's PSNR at the true mask's pixels, the product's level against the regressor's.
-Numbers: docs/RESULTS.md, "The level's cues".
+SCENES256: scene folders of every third of data/factory256's first 2400 training samples
+(`export.factory.eval_scenes.write_scene(dataset.open_dataset("data/factory256"), "train", id,
+"data/levelcues/scenes256train")`). Numbers: docs/RESULTS.md, "The level's cues".
 """
 
 from __future__ import annotations
