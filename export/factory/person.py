@@ -112,12 +112,18 @@ def splits() -> dict[str, dict[str, tuple[str, ...]]]:
 
 
 def pose_rotations(name: str, skeleton: Skeleton) -> np.ndarray:
-    """Local bone rotations (B, 3, 3) of a catalogue pose ("rest" gives identities)."""
+    """Local bone rotations (B, 3, 3) of a catalogue pose ("rest" gives identities); a fresh
+    array each call (a mixed pose reads up to five poses a person: each file is read once)."""
+    return _pose_rotations(name, tuple(skeleton.names)).copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _pose_rotations(name: str, bone_names: tuple[str, ...]) -> np.ndarray:
     if name == "rest":
-        return np.tile(np.eye(3), (len(skeleton.names), 1, 1))
+        return np.tile(np.eye(3), (len(bone_names), 1, 1))
     path = assets.core_path(f"poses/{name}.bvh") if name in CORE_POSES else \
         assets.asset_path(f"poses/{name}.bvh")
-    return skinning.local_rotations_from_bvh(read_bvh(path), skeleton.names)
+    return skinning.local_rotations_from_bvh(read_bvh(path), bone_names)
 
 
 def choose_outfit(rng: np.random.Generator, split: str, gender: float) -> dict[str, str]:

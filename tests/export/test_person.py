@@ -149,6 +149,16 @@ def test_a_mirrored_pose_mirrored_again_is_the_pose(base):
     assert angle(once[left]) == pytest.approx(angle(pose[right]))
 
 
+def test_a_pose_read_once_is_handed_out_fresh(base):
+    from export.factory.person import base_model, pose_rotations
+
+    skeleton = base_model().skeleton
+    first = pose_rotations("fight01", skeleton)
+    first[:] = 0.0  # a caller may change its copy
+    np.testing.assert_allclose(np.linalg.det(pose_rotations("fight01", skeleton)), 1.0, atol=1e-9)
+    np.testing.assert_array_equal(pose_rotations("rest", skeleton)[3], np.eye(3))
+
+
 def test_a_leg_keeps_its_turn_against_the_hips_of_its_own_pose(base):
     """gym01 is a handstand whose root turns the body half over and whose spine and pelvis turn
     it back: a leg taken into a standing pose hangs down from the hips, not up."""
