@@ -38,16 +38,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from scene_run import run_scene  # noqa: E402
+
 from export.factory import dataset  # noqa: E402
 from export.factory.person import base_model, build_person  # noqa: E402
 from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
 from relightcli import stages  # noqa: E402
-from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.errors import RelightError  # noqa: E402
-from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
-from relightcli.io.envmap import load_envmap  # noqa: E402
-from relightcli.io.images import read_image  # noqa: E402
-from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
+from relightcli.evaluate import find_scenes  # noqa: E402
+from relightcli.pipeline import RelightOptions  # noqa: E402
 from relightcli.stages.frame import Models  # noqa: E402
 
 # (left, right) bone heads of the 12 main joints
@@ -129,7 +128,6 @@ def fitted_joints(frame, models) -> tuple[dict, dict] | None:
 
 
 def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_world: bool = False) -> dict:
-    scene = load_scene(folder)
     sample_id = folder.name.split("_", 1)[1]
     truth_m, truth_px, rect = true_joints(data, split, sample_id)
     options = RelightOptions(outputs=("relit",), method="sh9", threads=2)
@@ -139,8 +137,7 @@ def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_worl
 
         stages.STAGES["body"] = with_true_world(body_stage, json.loads((folder / "scene.json").read_text()))
     try:
-        frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask if use_gt_mask else None,
-                              load_envmap(scene.target_path), options, ItemReport(str(folder)), models)
+        frame = run_scene(folder, options, models, use_gt_mask)
     finally:
         stages.STAGES["body"] = body_stage
     limbs = limbs_kept(frame, truth_px)

@@ -25,6 +25,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
 EPS = 1e-4
 DETAIL_SIGMAS = (8.0, 16.0)
@@ -49,13 +50,11 @@ def blends(body: np.ndarray, face: np.ndarray, weight: np.ndarray, inside: np.nd
 
 
 def scene_rows(folder: Path, options, models) -> list:
-    from relightcli.batch import ItemReport
+    from scene_run import replaced, run_scene
+
     from relightcli.compose import crop_square
     from relightcli.evaluate import load_scene
     from relightcli.geometry.face import cut_crop, face_blend_weight
-    from relightcli.io.envmap import load_envmap
-    from relightcli.io.images import read_image
-    from relightcli.pipeline import run_stages
     from relightcli.stages import face as face_stage
 
     captured = []
@@ -67,13 +66,9 @@ def scene_rows(folder: Path, options, models) -> list:
                          cut_crop(frame.crop_mask, face.crop)))
         return patch, pixels, scale
 
+    with replaced(face_stage, "face_shading", spy):
+        frame = run_scene(folder, options, models)
     scene = load_scene(folder)
-    face_stage.face_shading = spy
-    try:
-        frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path), options,
-                              ItemReport(folder.name), models)
-    finally:
-        face_stage.face_shading = original
     truth = crop_square(scene.shading, frame.box)
     person = frame.crop_mask > 0.5
     rows = []

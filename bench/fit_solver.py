@@ -16,13 +16,13 @@ from scipy.optimize import least_squares
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
-from relightcli.batch import ItemReport  # noqa: E402
-from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
+from scene_run import replaced, run_scene  # noqa: E402
+
+from relightcli.evaluate import find_scenes  # noqa: E402
 from relightcli.geometry import body_fit  # noqa: E402
-from relightcli.io.envmap import load_envmap  # noqa: E402
-from relightcli.io.images import read_image  # noqa: E402
-from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
+from relightcli.pipeline import RelightOptions  # noqa: E402
 from relightcli.stages.frame import Models  # noqa: E402
 
 
@@ -38,13 +38,11 @@ def main() -> int:
         rows.append((evaluations, *(float(fun(v) @ fun(v)) for v in (mine, minpack))))
         return mine
 
-    body_fit.levenberg_marquardt = both
     models = Models(2, 512)
     options = RelightOptions(outputs=("body_normal",), method="sh9", threads=2)
-    for folder in (f for scenes in args.scenes for f in find_scenes(Path(scenes))):
-        scene = load_scene(folder)
-        run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path), options,
-                   ItemReport(str(folder)), models)
+    with replaced(body_fit, "levenberg_marquardt", both):
+        for folder in (f for scenes in args.scenes for f in find_scenes(Path(scenes))):
+            run_scene(folder, options, models)
     table = np.array(rows)
     for evaluations, stage in ((20, "stage 2"), (15, "stage 3")):
         mine, minpack = table[table[:, 0] == evaluations, 1:].T

@@ -30,14 +30,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import bench_fit_renders as fit_bench  # noqa: E402
+from scene_run import replaced, run_scene  # noqa: E402
 
 from export.factory import dataset  # noqa: E402
-from relightcli.batch import ItemReport  # noqa: E402
-from relightcli.evaluate import load_scene  # noqa: E402
 from relightcli.geometry.body_fit import TURN_WITNESS_MIN, blazepose_world_to_model  # noqa: E402
-from relightcli.io.envmap import load_envmap  # noqa: E402
-from relightcli.io.images import read_image  # noqa: E402
-from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
+from relightcli.pipeline import RelightOptions  # noqa: E402
 from relightcli.stages import body as body_stage  # noqa: E402
 from relightcli.stages.frame import Models  # noqa: E402
 
@@ -71,13 +68,9 @@ def measure(folder: Path, data, split: str, models) -> dict:
         seen.update(inputs=(keypoints, world), fits=fits, witness=turn_witness)
         return fits[2]
 
-    scene = load_scene(folder)
-    body_stage._fit_on_one_opencv_thread = fit_all
-    try:  # the body_normal layer needs the stages up to the body maps, no more
-        frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path),
-                              RelightOptions(outputs=("body_normal",), threads=2), ItemReport(folder.name), models)
-    finally:
-        body_stage._fit_on_one_opencv_thread = fit_once
+    with replaced(body_stage, "_fit_on_one_opencv_thread", fit_all):
+        # the body_normal layer needs the stages up to the body maps, no more
+        frame = run_scene(folder, RelightOptions(outputs=("body_normal",), threads=2), models)
     if "fits" not in seen:
         return {"scene": folder.name, "skipped": "nobody fitted"}
     row = {"scene": folder.name, "true_yaw": fit_bench.yaw_deg(fit_bench.facing(truth)), "depth_side": seen["witness"]}

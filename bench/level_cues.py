@@ -37,6 +37,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
 from relightcli.io.images import LUMINANCE  # noqa: E402
 
@@ -127,13 +128,12 @@ def bound(factory: str, train: int) -> None:
 
 
 def capture(scenes: str, factory: str, split: str, out: Path, resolution: int) -> None:
+    from scene_run import replaced, run_scene
+
     from export.factory import dataset
     from relightcli import compose
-    from relightcli.batch import ItemReport
-    from relightcli.evaluate import find_scenes, load_scene
-    from relightcli.io.envmap import load_envmap
-    from relightcli.io.images import read_image
-    from relightcli.pipeline import RelightOptions, run_stages
+    from relightcli.evaluate import find_scenes
+    from relightcli.pipeline import RelightOptions
     from relightcli.stages import delight
     from relightcli.stages.frame import Models
 
@@ -146,16 +146,14 @@ def capture(scenes: str, factory: str, split: str, out: Path, resolution: int) -
         return anchor(ratio, net_albedo, mask, *args, **kwargs)
 
     small = lambda image: cv2.resize(np.asarray(image, np.float32), (SIDE, SIDE), interpolation=cv2.INTER_AREA)  # noqa: E731
-    delight.compose.anchor_albedo = keeping
-    try:
+    options = RelightOptions(outputs=("relit",), method="raytrace-norefine", threads=2, resolution=resolution)
+    with replaced(delight.compose, "anchor_albedo", keeping):
         for folder in find_scenes(scenes):
             if (out / f"{folder.name}.npz").exists():
                 continue
-            scene, truth = load_scene(folder), data.load(split, folder.name.split("_", 1)[1])
-            options = RelightOptions(outputs=("relit",), method="raytrace-norefine", threads=2, resolution=resolution)
+            truth = data.load(split, folder.name.split("_", 1)[1])
             kept.clear()
-            frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path),
-                                  options, ItemReport(str(folder)), models)
+            frame = run_scene(folder, options, models)
             if not kept:
                 print(folder.name, "no albedo", flush=True)
                 continue
@@ -171,8 +169,6 @@ def capture(scenes: str, factory: str, split: str, out: Path, resolution: int) -
                                 mask=small(kept["mask"]), face_points=face, true_albedo=at(truth["albedo"]),
                                 true_mask=at(truth["mask"]), person=person)
             print(folder.name, flush=True)
-    finally:
-        delight.compose.anchor_albedo = anchor
 
 
 def captured(folder: Path):

@@ -43,12 +43,11 @@ LUMINANCE = compose.LUMINANCE
 def capture(scenes: str, factory: str, split: str, cache: Path) -> None:
     import json
 
+    from scene_run import replaced, run_scene
+
     from export.factory import dataset
-    from relightcli.batch import ItemReport
-    from relightcli.evaluate import find_scenes, load_scene
-    from relightcli.io.envmap import load_envmap
-    from relightcli.io.images import read_image
-    from relightcli.pipeline import RelightOptions, run_stages
+    from relightcli.evaluate import find_scenes
+    from relightcli.pipeline import RelightOptions
     from relightcli.stages.frame import Models
 
     cache.mkdir(parents=True, exist_ok=True)
@@ -65,23 +64,19 @@ def capture(scenes: str, factory: str, split: str, cache: Path) -> None:
         kept["solved_light"] = solved
         return solved, layer
 
-    delight.solve_input_light = keeping
-    try:
+    options = RelightOptions(outputs=("relit",), method="raytrace-norefine", threads=2)
+    with replaced(delight, "solve_input_light", keeping):
         for folder in find_scenes(scenes):
-            scene, truth = load_scene(folder), data.load(split, folder.name.split("_", 1)[1])
+            truth = data.load(split, folder.name.split("_", 1)[1])
             gains = np.asarray(json.loads((folder / "scene.json").read_text())["spec"]["augmentation"]["gains"])
-            options = RelightOptions(outputs=("relit",), method="raytrace-norefine", threads=2)
             kept.clear()
-            frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path),
-                                  options, ItemReport(str(folder)), models)
-            at = lambda image: compose.crop_square(np.asarray(image, np.float32), frame.box).reshape(  # noqa: E731
+            frame = run_scene(folder, options, models)
+            at = lambda image, box=frame.box: compose.crop_square(np.asarray(image, np.float32), box).reshape(  # noqa: E731
                 -1, *np.shape(image)[2:])[kept["pixels"]]
             np.savez_compressed(cache / f"{folder.name}.npz", **kept, true_albedo=at(truth["albedo"]),
                                 true_shading=at(truth["shading_a"]) * gains, true_mask=at(truth["mask"]),
                                 true_light=truth["light_a"] * gains)
             print(folder.name, flush=True)
-    finally:
-        delight.solve_input_light = solve
 
 
 def load(path: Path) -> dict:

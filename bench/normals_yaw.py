@@ -26,13 +26,12 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import bench_fit_renders as fit_bench  # noqa: E402
+from scene_run import run_scene  # noqa: E402
+
 from export.factory import dataset  # noqa: E402
 from relightcli import compose  # noqa: E402
-from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene  # noqa: E402
-from relightcli.io.envmap import load_envmap  # noqa: E402
-from relightcli.io.images import read_image  # noqa: E402
-from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
+from relightcli.pipeline import RelightOptions  # noqa: E402
 from relightcli.stages.frame import Models, net_side, resample  # noqa: E402
 
 TORSO = ("upperarm01.L", "upperarm01.R", "upperleg01.R", "upperleg01.L")
@@ -53,8 +52,7 @@ def measure(folder: Path, data, split: str, models) -> dict:
     scene = load_scene(folder)
     truth_m, truth_px, _ = fit_bench.true_joints(data, split, folder.name.split("_", 1)[1])
     options = RelightOptions(outputs=("normal",), method="sh9", threads=2)
-    frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask, load_envmap(scene.target_path), options,
-                          ItemReport(str(folder)), models)
+    frame = run_scene(folder, options, models)
     side, box = frame.crop_mask.shape[0], frame.box
     quad = np.array([(truth_px[n] - [box.x0, box.y0]) * side / box.size for n in TORSO])
     region = np.zeros((side, side), np.uint8)
