@@ -38,3 +38,16 @@ def test_reads_an_oracle_report_row_by_row(tmp_path):
     assert by_pose.by_pose(report, tmp_path, "true mask")["tpose"] == (1, 1, [17.0, 20.0, 18.0, 19.0])
     count, scored, means = by_pose.by_pose(report, tmp_path, "true albedo")["tpose"]
     assert (count, scored, means[2]) == (1, 1, 23.0)
+
+
+def test_reads_the_fit_s_report(tmp_path):
+    for name, pose in (("a", "tpose"), ("b", "tpose"), ("c", "fly02")):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "scene.json").write_text(json.dumps({"person": {"pose": pose}}))
+    report = {"summary": {}, "scenes": [
+        {"scene": "a", "3d_cm": 10.0, "depth_cm": 8.0, "2d_cm": 3.0, "yaw_deg": 4.0},
+        {"scene": "b", "3d_cm": 14.0, "depth_cm": 12.0, "2d_cm": 5.0, "yaw_deg": 8.0},
+        {"scene": "c", "skipped": "nobody fitted"}]}
+    out = by_pose.fit_by_pose(report, tmp_path)
+    assert out["tpose"] == (2, 2, [12.0, 10.0, 4.0, 6.0])
+    assert out["fly02"][:2] == (1, 0)
