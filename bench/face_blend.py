@@ -66,9 +66,9 @@ def scene_rows(folder: Path, options, models) -> list:
                          cut_crop(frame.crop_mask, face.crop)))
         return patch, pixels, scale
 
-    with replaced(face_stage, "face_shading", spy):
-        frame = run_scene(folder, options, models)
     scene = load_scene(folder)
+    with replaced(face_stage, "face_shading", spy):
+        frame = run_scene(folder, options, models, scene=scene)
     truth = crop_square(scene.shading, frame.box)
     person = frame.crop_mask > 0.5
     rows = []

@@ -52,7 +52,7 @@ def measure(folder: Path, data, split: str, models) -> dict:
     scene = load_scene(folder)
     truth_m, truth_px, _ = fit_bench.true_joints(data, split, folder.name.split("_", 1)[1])
     options = RelightOptions(outputs=("normal",), method="sh9", threads=2)
-    frame = run_scene(folder, options, models)
+    frame = run_scene(folder, options, models, scene=scene)
     side, box = frame.crop_mask.shape[0], frame.box
     quad = np.array([(truth_px[n] - [box.x0, box.y0]) * side / box.size for n in TORSO])
     region = np.zeros((side, side), np.uint8)

@@ -32,10 +32,11 @@ def replaced(owner, name: str, replacement):
         setattr(owner, name, original)
 
 
-def run_scene(folder: Path, options, models, use_gt_mask: bool = True):
+def run_scene(folder: Path, options, models, use_gt_mask: bool = True, scene=None):
     """The frame the pipeline leaves for a scene folder: its photo, its true mask (or the
-    product's own where use_gt_mask is false), its target light."""
-    scene = load_scene(folder)
+    product's own where use_gt_mask is false), its target light. `scene`: the folder's
+    `load_scene`, when the caller has it already (for its truth)."""
+    scene = load_scene(folder) if scene is None else scene
     frame, _ = run_stages(read_image(scene.input_path).rgb, scene.mask if use_gt_mask else None,
                           load_envmap(scene.target_path), options, ItemReport(str(folder)), models)
     return frame
