@@ -10,6 +10,8 @@ capacity or of data? The de-lighting net (issue 47), the geometry prior net and 
         --runs data/curves_geometry --samples 2400 --sizes small
     python bench/net_curves.py train --family ao --data data/factory256 --runs data/curves_ao
     python bench/net_curves.py ship --family delight --data data/factory256 --runs data/curves --run RUN
+    python bench/net_curves.py export --family delight --data data/factory256 --runs data/curves --run RUN \
+        --to /tmp/models_RUN   # then RELIGHT_MODELS_DIR=/tmp/models_RUN python bench/light_solve.py ...
 
 `train` trains one run per (width, training samples) in turn with the runtime's inputs (for
 the de-lighting net the geometry net's normals: `python -m export.factory.coarse DATA
@@ -22,6 +24,7 @@ shipped file's weights instead (fine-tuning: SIZE_N..._from_delight; the file's 
 folded by its exporter, stay in eval mode); `--lr` another peak learning rate than the config's
 (..._lrLR), `--set KEY=JSON ...` other settings of the trainer's config (..._KEYJSON).
 `ship --run RUN` exports a scored run's net into models/ (manifest entry with its scores).
+`export --run RUN --to DIR` makes DIR a copy of models/ with the run's net, for other bench scripts.
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -182,6 +185,24 @@ def pipeline_version() -> str:
     return digest.hexdigest()[:12]
 
 
+def models_with_run(run: Path, family: str, data: str, step: int, models: Path) -> Path:
+    """A copy of the shipped models folder at `models` with this run's net (at `step`) in place
+    of the family's: what `RELIGHT_MODELS_DIR` takes for any bench script."""
+    shutil.copytree(ROOT / "models", models)
+    subprocess.run(export_command(family, run, data, step, models), cwd=ROOT, check=True, capture_output=True)
+    return models
+
+
+def export(args) -> None:
+    """A models folder with one run's net, for the bench scripts that score more than `score`
+    does (e.g. bench/light_solve.py's level split, RELIGHT_MODELS_DIR=TO)."""
+    run = Path(args.runs) / args.run
+    if Path(args.to).exists():
+        raise SystemExit(f"{args.to} exists: name a new folder")
+    models_with_run(run, args.family, args.data, last_record(run / "log.jsonl").get("step", 0), Path(args.to))
+    print(args.to)
+
+
 def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict) -> dict:
     """The product's eval on each set of scenes with this run's net in place of the shipped
     one, and the net's run time ("seconds"); kept in the run's pipeline.json by step, pipeline
@@ -193,9 +214,7 @@ def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict)
     wanted = [scenes for scenes in sets if f"{step} {version} {scenes}" not in kept]
     if wanted or f"{step} seconds" not in kept:
         with tempfile.TemporaryDirectory() as tmp:
-            models = Path(tmp) / "models"
-            shutil.copytree(ROOT / "models", models)
-            subprocess.run(export_command(family, run, data, step, models), cwd=ROOT, check=True, capture_output=True)
+            models = models_with_run(run, family, data, step, Path(tmp) / "models")
             kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
             for scenes in wanted:
                 kept[f"{step} {version} {scenes}"] = eval_scores(models, scenes)
@@ -289,7 +308,7 @@ def ship(args) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("train", "score", "ship"):
+    for name in ("train", "score", "ship", "export"):
         command = sub.add_parser(name)
         command.add_argument("--family", choices=sorted(CONFIGS), default="delight")
         command.add_argument("--data", required=True)
@@ -311,11 +330,13 @@ def main() -> None:
     sub.choices["score"].add_argument("--only", nargs="+", help="score these runs (names) only")
     sub.choices["score"].add_argument("--out")
     sub.choices["ship"].add_argument("--run", required=True, help="the run (a name in --runs) to ship")
+    sub.choices["export"].add_argument("--run", required=True, help="the run (a name in --runs) to export")
+    sub.choices["export"].add_argument("--to", required=True, help="a new folder: the shipped models with the run's net")
     args = parser.parse_args()
     if args.command == "train":
         args.steps = args.steps or STEPS[args.family]
         args.crop = CROP.get(args.family) if args.crop is None else (args.crop or None)
-    {"train": train, "score": score, "ship": ship}[args.command](args)
+    {"train": train, "score": score, "ship": ship, "export": export}[args.command](args)
 
 
 if __name__ == "__main__":

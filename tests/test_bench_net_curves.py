@@ -118,3 +118,29 @@ def test_with_people_marks_each_scene_with_its_person(tmp_path):
     scores = {"per_scene": {name: {"relit": 17.0} for name in ("val_000000", "val_000001", "val_000002", "gone")}}
     marked = net_curves.with_people(scores, str(tmp_path))["per_scene"]
     assert [marked[name].get("person") for name in sorted(marked)] == [None, 11, 11, 12]
+
+
+def test_export_makes_a_models_folder_with_the_runs_net(tmp_path, monkeypatch):
+    """`export` copies the shipped models and exports the run at its last step into the copy;
+    it refuses a folder that exists (nothing overwritten)."""
+    import subprocess
+    from argparse import Namespace
+
+    import pytest
+
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "manifest.json").write_text("{}")
+    monkeypatch.setattr(net_curves, "ROOT", tmp_path)
+    run = tmp_path / "runs" / "r"
+    run.mkdir(parents=True)
+    (run / "log.jsonl").write_text(json.dumps({"step": 700}) + "\n")
+    commands = []
+    monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: commands.append(command))
+    to = tmp_path / "out" / "models_r"
+    net_curves.export(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", to=str(to)))
+    assert (to / "manifest.json").read_text() == "{}"
+    [command] = commands
+    assert command[command.index("--export-to") + 1] == str(to)
+    assert command[command.index("--steps") + 1] == "700"
+    with pytest.raises(SystemExit, match="exists"):
+        net_curves.export(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", to=str(to)))
