@@ -38,12 +38,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from scene_run import run_scene  # noqa: E402
+from scene_run import replaced_stage, run_scene  # noqa: E402
 
 from export.factory import dataset  # noqa: E402
 from export.factory.person import base_model, build_person  # noqa: E402
 from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
-from relightcli import stages  # noqa: E402
 from relightcli.errors import RelightError  # noqa: E402
 from relightcli.evaluate import find_scenes  # noqa: E402
 from relightcli.pipeline import RelightOptions  # noqa: E402
@@ -131,15 +130,14 @@ def measure(folder: Path, data, split: str, use_gt_mask: bool, models, true_worl
     sample_id = folder.name.split("_", 1)[1]
     truth_m, truth_px, rect = true_joints(data, split, sample_id)
     options = RelightOptions(outputs=("relit",), method="sh9", threads=2)
-    body_stage = stages.STAGES["body"]
+    wrap = None
     if true_world:
         from oracles import with_true_world
 
-        stages.STAGES["body"] = with_true_world(body_stage, json.loads((folder / "scene.json").read_text()))
-    try:
+        meta = json.loads((folder / "scene.json").read_text())
+        wrap = lambda stage: with_true_world(stage, meta)  # noqa: E731
+    with replaced_stage("body", wrap):
         frame = run_scene(folder, options, models, use_gt_mask)
-    finally:
-        stages.STAGES["body"] = body_stage
     limbs = limbs_kept(frame, truth_px)
     fitted = fitted_joints(frame, models)
     if fitted is None:

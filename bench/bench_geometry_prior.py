@@ -33,8 +33,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
-from relightcli import compose, stages  # noqa: E402
+from scene_run import replaced_stage  # noqa: E402
+
+from relightcli import compose  # noqa: E402
 from relightcli.stages import shading as shading_stages  # noqa: E402
 from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.errors import RelightError  # noqa: E402
@@ -93,14 +96,10 @@ def measure(folder: Path, variant: str, models: Models, use_gt_mask: bool) -> di
     scene = load_scene(folder)
     options = RelightOptions(outputs=("relit", "albedo", "shading"), method="raytrace-norefine", threads=2)
     image = read_image(scene.input_path)
-    geometry_stage = stages.STAGES["geometry"]
-    if variant == "true_normals":
-        stages.STAGES["geometry"] = with_true_normals(geometry_stage, scene.normal)
-    try:
+    wrap = (lambda stage: with_true_normals(stage, scene.normal)) if variant == "true_normals" else None
+    with replaced_stage("geometry", wrap):
         frame, _ = run_stages(image.rgb, scene.mask if use_gt_mask else None, load_envmap(scene.target_path),
                               options, ItemReport(str(folder)), models)
-    finally:
-        stages.STAGES["geometry"] = geometry_stage
     height, width = image.rgb.shape[:2]
     normal = compose.paste_back(frame.normal, frame.box, height, width)
     pred = {"relit": frame.relit, "albedo": compose.paste_back(frame.albedo, frame.box, height, width),

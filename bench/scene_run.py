@@ -19,6 +19,7 @@ from relightcli.evaluate import load_scene  # noqa: E402
 from relightcli.io.envmap import load_envmap  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
 from relightcli.pipeline import run_stages  # noqa: E402
+from relightcli.stages import STAGES  # noqa: E402
 
 
 @contextmanager
@@ -30,6 +31,18 @@ def replaced(owner, name: str, replacement):
         yield
     finally:
         setattr(owner, name, original)
+
+
+@contextmanager
+def replaced_stage(name: str, wrap=None):
+    """The pipeline's stage `name` is `wrap(stage)` inside the block (itself where `wrap` is None),
+    and the stage it was after it, whatever happens."""
+    original = STAGES[name]
+    STAGES[name] = original if wrap is None else wrap(original)
+    try:
+        yield
+    finally:
+        STAGES[name] = original
 
 
 def run_scene(folder: Path, options, models, use_gt_mask: bool = True, scene=None):
