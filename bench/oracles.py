@@ -45,13 +45,12 @@ sys.path.insert(0, str(ROOT / "bench"))
 from bench_geometry_prior import with_true_normals  # noqa: E402
 from light_solve import substituted  # noqa: E402
 
-from export.body_model import posed_landmarks  # noqa: E402
+from export.body_model import true_world_landmarks  # noqa: E402
 from export.factory import dataset  # noqa: E402
 from export.factory.person import naked_body  # noqa: E402
 from export.factory.render import camera_vertices, world_to_pixel  # noqa: E402
 from relightcli import compose, stages  # noqa: E402
 from relightcli.evaluate import find_scenes, load_scene, scene_metrics  # noqa: E402
-from relightcli.geometry.body_model import LANDMARK_NAMES  # noqa: E402
 from relightcli.pipeline import RelightOptions, predict_scene  # noqa: E402
 from relightcli.stages.frame import Models, unit  # noqa: E402
 
@@ -100,14 +99,6 @@ def true_body_in_crop(body, meta: dict, rect, box, photo_width: int) -> np.ndarr
     crop[:, 1] = 1.0 - (pixels[:, 1] - box.y0) * units_per_pixel
     crop[:, 2] = camera[:, 2] * (photo_width / (rect[1] - rect[0])) * units_per_pixel
     return crop
-
-
-def true_world_landmarks(body, meta: dict) -> np.ndarray:
-    """(33, 3) the naked body's BlazePose landmarks as BlazePose's world landmarks are given:
-    metres, camera-aligned axes, hip-centred, y down, z away from the camera."""
-    camera = camera_vertices(posed_landmarks(body), meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
-    hips = [LANDMARK_NAMES.index("left_hip"), LANDMARK_NAMES.index("right_hip")]
-    return (camera - camera[hips].mean(axis=0)) * np.array([1.0, -1.0, -1.0])
 
 
 def with_true_body(body_stage, meta: dict, rect):

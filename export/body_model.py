@@ -165,6 +165,18 @@ def posed_landmarks(body: person.NakedBody) -> np.ndarray:
     return np.einsum("lij,lj->li", bones, np.c_[marks, np.ones(len(marks))])
 
 
+def true_world_landmarks(body: person.NakedBody, meta: dict) -> np.ndarray:
+    """(33, 3) a factory sample's naked body's BlazePose landmarks (posed_landmarks) as BlazePose
+    gives its world landmarks: metres, camera-aligned axes (the sample's camera pitch and yaw
+    from `meta["spec"]`), hip-centred, y down, z away from the camera."""
+    from export.factory.render import camera_vertices
+    from relightcli.geometry.body_model import LANDMARK_NAMES
+
+    camera = camera_vertices(posed_landmarks(body), meta["spec"]["pitch_deg"], meta["spec"]["yaw_deg"])
+    hips = [LANDMARK_NAMES.index("left_hip"), LANDMARK_NAMES.index("right_hip")]
+    return (camera - camera[hips].mean(axis=0)) * np.array([1.0, -1.0, -1.0])
+
+
 def sample_points(base: person.BaseModel, rows, n_body: int, first: int, count: int) -> np.ndarray:
     """(count, P, 3) float64 m: rest points of factory bodies number first..first+count-1,
     body i drawn from SeedSequence([SEED, i])."""

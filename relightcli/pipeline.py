@@ -46,6 +46,7 @@ STAGE_NEEDS = {
 # sessions of a plan's stages are created ahead on a background thread (Models.prefetch).
 STAGE_MODELS = {
     "people": ("person_detector", "pose_landmarks"),
+    "body": ("lift",),  # when the models folder ships it
     "geometry": ("geometry_prior",),  # "geometry" when no body fit converges
     "ao": ("ao",),
     "delight": ("delight",),
@@ -154,12 +155,12 @@ def planned_models(options: RelightOptions) -> list[str]:
     families = [family for stage in STAGE_NEEDS if stage in stages for family in STAGE_MODELS.get(stage, ())]
     if "geometry_prior" in families and not _ships("geometry_prior"):
         families[families.index("geometry_prior")] = "geometry"
-    return families
+    return [family for family in families if family != "lift" or _ships("lift")]
 
 
 def _ships(model: str) -> bool:
     """Whether the models folder describes `model` (the face refinement: the face stage's
-    consumer; the geometry prior net: the body maps')."""
+    consumer; the geometry prior net: the body maps'; the landmark lifter: the body fit's)."""
     from relightcli.errors import RelightError
     from relightcli.nets.manifest import load_manifest
 

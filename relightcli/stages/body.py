@@ -8,6 +8,7 @@ import numpy as np
 
 from relightcli import compose
 from relightcli.geometry.body_fit import depth_side
+from relightcli.nets.lift import image_depths
 from relightcli.stages.crop import person_keypoints_in_crop
 from relightcli.stages.frame import Frame, Models
 
@@ -24,13 +25,17 @@ def stage_body(frame: Frame, options, models: Models) -> None:
     import time
 
     model = models.body_model()
+    lifter = models.get("lift") if models.has("lift") else None
     silhouette = (frame.crop_mask > 0.5).astype(np.float32)
     fits, people = [], []
     for person in frame.people:
         start = time.perf_counter()
+        landmarks, world = person.pose.landmarks, person.pose.world
+        if lifter is not None:  # BlazePose's depths corrected (relightcli.nets.lift)
+            world = lifter.lift(landmarks, world)
+            landmarks = image_depths(landmarks, world)
         fit = _fit_on_one_opencv_thread(model, person_keypoints_in_crop(person, frame.view.scale, frame.box),
-                                        person.pose.landmarks[:, 3], person.pose.world, silhouette, models,
-                                        depth_side(person.pose.landmarks))
+                                        landmarks[:, 3], world, silhouette, models, depth_side(landmarks))
         fits.append(fit)
         residual = float(fit.residual_px)
         note = {"seconds": round(time.perf_counter() - start, 4),

@@ -233,6 +233,7 @@ def _session_classes() -> dict:
     from relightcli.nets.delight import DelightNet
     from relightcli.nets.face_mesh import FaceDetector, FaceMesh
     from relightcli.nets.geometry import AONet, AOPriorNet, GeometryNet, GeometryPriorNet
+    from relightcli.nets.lift import Lifter
     from relightcli.nets.pose import PersonDetector, PoseLandmarker
     from relightcli.nets.refine import BodyRefineNet, FaceRefineNet
     from relightcli.nets.selfie import SelfieSegmenter
@@ -242,7 +243,7 @@ def _session_classes() -> dict:
             "body_refine": BodyRefineNet, "face_refine": FaceRefineNet,
             "person_detector": PersonDetector, "pose_landmarks": PoseLandmarker,
             "face_detector": FaceDetector, "face_mesh": FaceMesh,
-            "selfie_segmentation": SelfieSegmenter}
+            "selfie_segmentation": SelfieSegmenter, "lift": Lifter}
 
 
 def person_support(frame: Frame) -> np.ndarray:

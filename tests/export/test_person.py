@@ -107,6 +107,9 @@ def test_naked_body_lies_under_the_clothes(person):
     distance, _ = cKDTree(person.vertices).query(body.vertices[used])
     assert (distance < 1e-5).mean() > 0.5  # the skin the clothes leave bare is the same skin
     assert distance.max() < 0.1
+    unplaced = naked_body(7, "train", placed=False)  # the same body, moved as a whole
+    shift = body.vertices[used] - unplaced.vertices[used]
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-5)
 
 
 def test_pose_variety_zero_keeps_the_people_of_before(person):
