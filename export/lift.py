@@ -95,9 +95,10 @@ def load_pairs(folder: Path, split: str) -> dict:
     return {key: value[found] for key, value in joined.items()}
 
 
-def arrays(pairs: dict, mirror: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(inputs (N, FEATURES), targets (N, 99): the truth minus BlazePose's world landmarks, world
-    (N, 33, 3)); with `mirror` the mirror image of each pair after them."""
+def arrays(pairs: dict, mirror: bool, depth_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(inputs (N, FEATURES), targets (N, 99): the truth minus BlazePose's world landmarks (in
+    depth alone with `depth_only`: x and y as BlazePose gave them), world (N, 33, 3)); with
+    `mirror` the mirror image of each pair after them."""
     from relightcli.nets.lift import features, mirrored
 
     rows = list(zip(pairs["landmarks"], pairs["world"], pairs["true"]))
@@ -105,7 +106,10 @@ def arrays(pairs: dict, mirror: bool) -> tuple[np.ndarray, np.ndarray, np.ndarra
         rows += [(*mirrored(landmarks, world), mirrored(landmarks, true)[1]) for landmarks, world, true in rows]
     inputs = np.stack([features(landmarks, world) for landmarks, world, _ in rows])
     world = np.stack([world for _, world, _ in rows])
-    targets = np.stack([true - world for _, world, true in rows]).reshape(len(rows), -1)
+    targets = np.stack([true - world for _, world, true in rows])
+    if depth_only:
+        targets[:, :, :2] = 0.0
+    targets = targets.reshape(len(rows), -1)
     return inputs, targets.astype(np.float32), world
 
 
@@ -144,20 +148,22 @@ def landmark_errors(correction: np.ndarray, targets: np.ndarray) -> dict:
 
 
 def train(folder: Path, out: Path, width: int = 256, epochs: int = 200, batch: int = 256, lr: float = 1e-3,
-          samples: int | None = None, threads: int = 1) -> dict:
+          samples: int | None = None, threads: int = 1, dropout: float = 0.1, weight_decay: float = 0.0,
+          depth_only: bool = False) -> dict:
     """Trains the lifter on `folder`'s train pairs (the first `samples`), keeps the epoch with
-    the lowest mean landmark error on its val pairs; out/ gets lift.pt, log.jsonl, metrics.json."""
+    the lowest mean landmark error on its val pairs (against the truth: with `depth_only` the
+    net corrects the depths alone); out/ gets lift.pt, log.jsonl, metrics.json."""
     import torch
 
     torch.set_num_threads(threads)
     train_pairs, val_pairs = load_pairs(folder, "train"), load_pairs(folder, "val")
     if samples is not None:
         train_pairs = {key: value[:samples] for key, value in train_pairs.items()}
-    x, y, _ = arrays(train_pairs, mirror=True)
+    x, y, _ = arrays(train_pairs, mirror=True, depth_only=depth_only)
     vx, vy, _ = arrays(val_pairs, mirror=False)
     x, y, vx = torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(vx)
-    net = make_net(width)
-    optimiser = torch.optim.Adam(net.parameters(), lr=lr)
+    net = make_net(width, dropout=dropout)
+    optimiser = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=weight_decay)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, epochs)
     generator = torch.Generator().manual_seed(0)
     out.mkdir(parents=True, exist_ok=True)
@@ -179,7 +185,8 @@ def train(folder: Path, out: Path, width: int = 256, epochs: int = 200, batch: i
             if best is None or record["cm"] < best["cm"]:
                 best = record
                 torch.save(net.state_dict(), out / "lift.pt")
-    metrics = {"best": best, "width": width, "epochs": epochs, "lr": lr, "batch": batch,
+    metrics = {"best": best, "width": width, "epochs": epochs, "lr": lr, "batch": batch, "dropout": dropout,
+               "weight_decay": weight_decay, "depth_only": depth_only,
                "train_pairs": int(len(train_pairs["ids"])), "val_pairs": int(len(val_pairs["ids"])),
                "parameters": sum(p.numel() for p in net.parameters()), "folder": str(folder)}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
@@ -236,6 +243,9 @@ def main(argv=None) -> int:
     learn.add_argument("--lr", type=float, default=1e-3)
     learn.add_argument("--samples", type=int, default=None, help="the first N training pairs")
     learn.add_argument("--threads", type=int, default=1)
+    learn.add_argument("--dropout", type=float, default=0.1)
+    learn.add_argument("--weight-decay", type=float, default=0.0)
+    learn.add_argument("--depth-only", action="store_true", help="correct the depths alone")
     ship = commands.add_parser("export", help="a trained run's net to ONNX with its manifest entry")
     ship.add_argument("run", type=Path)
     ship.add_argument("--to", type=Path, required=True, help="the models folder")
@@ -246,7 +256,8 @@ def main(argv=None) -> int:
         pairs(args.data, args.splits, args.out, args.threads)
     elif args.command == "train":
         print(json.dumps(train(args.pairs, args.out, args.width, args.epochs, lr=args.lr, samples=args.samples,
-                               threads=args.threads)["best"]))
+                               threads=args.threads, dropout=args.dropout, weight_decay=args.weight_decay,
+                               depth_only=args.depth_only)["best"]))
     return 0
 
 

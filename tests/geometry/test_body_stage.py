@@ -119,3 +119,27 @@ def test_the_body_layers_are_written_from_the_prior_maps_alone(tmp_path):
     normal = read_image(tmp_path / "n.png", srgb=False).rgb * 2.0 - 1.0
     assert np.median(normal[..., 2][body]) > 0.5  # the body faces the camera
     np.testing.assert_allclose(normal[depth[..., 2] == 0], -1.0)  # black off the body
+
+
+def test_a_shipped_lifter_gives_the_fit_its_landmarks(tpose_frame, monkeypatch):
+    """With lift.onnx in the models folder the fit reads the lifted world landmarks and the
+    image landmarks' depths made from them (relightcli.nets.lift.image_depths)."""
+    import copy
+
+    from relightcli.nets.lift import image_depths
+    from relightcli.stages import body
+
+    frame = copy.copy(tpose_frame[0])
+    frame.notes = {}
+    pose = frame.people[0].pose
+    shift = np.array([0.0, 0.0, 0.1])
+    seen = {}
+    lifter = SimpleNamespace(lift=lambda landmarks, world: world + shift)
+    models = SimpleNamespace(body_model=tpose_frame[1].body_model, has=lambda name: name == "lift",
+                             get=lambda name: lifter)
+    monkeypatch.setattr(body, "_fit_on_one_opencv_thread", lambda *args: seen.update(world=args[3]) or
+                        SimpleNamespace(residual_px=0.0, converged=False, reason="stub"))
+    monkeypatch.setattr(body, "depth_side", lambda landmarks: seen.update(landmarks=landmarks))
+    stage_body(frame, RelightOptions(resolution=256), models)
+    np.testing.assert_allclose(seen["world"], pose.world + shift)
+    np.testing.assert_allclose(seen["landmarks"], image_depths(pose.landmarks, pose.world + shift))
