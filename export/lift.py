@@ -1,10 +1,10 @@
-"""The landmark lifter (issue 49): BlazePose's world landmarks made right in depth, learnt on the
+"""The landmark lifter (issue 49): BlazePose's world landmarks corrected by a net learnt on the
 factory's people, for the body fit (whose 3D error is mostly BlazePose's depths: docs/RESULTS.md,
-"What limits the fit").
+"What limits the fit"). Not shipped: "The fit's landmarks lifted" there.
 
-    python -m export.lift pairs data/factory256 data/factory256v --splits train val --out data/lift
-    python -m export.lift train data/lift --out data/runs/lift
-    python -m export.lift export data/runs/lift --to models
+    python -m export.lift pairs data/factory256 data/factory256v --splits val train --out data/lift
+    python -m export.lift train data/lift --out data/runs_lift/w1024 --width 1024 --epochs 40 --dropout 0.3
+    python -m export.lift export data/runs_lift/w1024 --to DIR     # DIR: a copy of models/
 
 `pairs`: per sample, the runtime's people stage on the sample as the photo (its true mask, the
 whole sample as the crop: export.factory.coarse.working_frame) and the first person's pose, beside
@@ -12,7 +12,7 @@ the true body's landmarks as BlazePose gives its world ones (export.body_model.t
 one file per dataset and split, DATASET_SPLIT.npz in --out, written every 250 samples so that the
 command resumes. `train`: an MLP from the pose's features (relightcli.nets.lift.features) to the
 world landmarks' correction, the mirror image of each pose as augmentation, chosen by its mean
-landmark error on the val pairs. `export`: the chosen step's net to ONNX (models/lift.onnx) with
+landmark error on the val pairs. `export`: the chosen epoch's net to ONNX (DIR/lift.onnx) with
 its manifest entry.
 """
 
@@ -53,6 +53,7 @@ def pose_pair(data, split: str, sample_id: str, models) -> dict:
 
 
 def pairs(roots: list[str], splits: list[str], out: Path, threads: int = 1) -> None:
+    """pose_pair of every sample of the datasets' splits not yet in out/DATASET_SPLIT.npz."""
     from relightcli.stages.frame import Models
 
     models = Models(threads=threads)
