@@ -1,5 +1,6 @@
-"""The landmark lifter (models/lift.onnx, trained by export/lift.py): BlazePose's world landmarks
-corrected in depth from everything BlazePose said of the person, for the body fit.
+"""The landmark lifter (a models folder's lift.onnx, trained by export/lift.py; none ships:
+docs/RESULTS.md, "The fit's landmarks lifted"): BlazePose's world landmarks corrected from
+everything BlazePose said of the person, for the body fit.
 
 BlazePose's world landmarks carry too little depth and turn the torso short (docs/RESULTS.md,
 "What limits the fit"); the lifter reads the pose's image landmarks (hip-centred, scaled by the
