@@ -27,6 +27,15 @@ def test_a_plan_prefetches_only_the_nets_its_stages_use(options, families):
     assert planned_models(options) == families
 
 
+def test_the_landmark_lifter_is_prefetched_only_where_the_models_folder_ships_it(monkeypatch):
+    from relightcli import pipeline
+
+    assert "lift" not in planned_models(RelightOptions())
+    monkeypatch.setattr(pipeline, "_ships", lambda model: True)
+    families = planned_models(RelightOptions())
+    assert families.index("pose_landmarks") < families.index("lift") < families.index("geometry_prior")
+
+
 def test_a_prefetched_session_is_the_one_get_returns_and_is_kept():
     models = Models(threads=1)
     models.prefetch(["ao", "face_detector"])
