@@ -15,6 +15,8 @@ Rows (every row after `ours` keeps the true mask, and is scored against `true ma
   true normals     the geometry stage's front normals replaced by the true ones
   true depth       front and back depth replaced by the factory's (as in `true geometry`),
                    the net's normals kept
+  true AO          the AO net's map (the refinement's input and the AO layer) replaced by the
+                   factory's AO over the true mask, the net's outside it
   true geometry    front and back normals and depth replaced by the factory's (the depth
                    moved to our front depth's median over the person, so the fitted bodies and
                    the reconstruction stay where they were; the silhouette's rim pixels blend
@@ -54,7 +56,7 @@ from relightcli.evaluate import find_scenes, load_scene, scene_metrics  # noqa: 
 from relightcli.pipeline import RelightOptions, predict_scene  # noqa: E402
 from relightcli.stages.frame import Models, unit  # noqa: E402
 
-ROWS = ("ours", "true mask", "true body", "true 3D landmarks", "true normals", "true depth", "true geometry",
+ROWS = ("ours", "true mask", "true body", "true 3D landmarks", "true normals", "true depth", "true AO", "true geometry",
         "true light", "true light, net level", "true albedo", "true shading")
 KEYS = ("relit", "albedo", "shading", "normal_deg")
 
@@ -83,6 +85,17 @@ def with_true_geometry(geometry_stage, truth: dict, normals: bool = True):
             g = replace(g, front_normal=normal, back_normal=unit(compose.crop_square(truth["back_normal"], box)))
             frame.normal = normal * (frame.crop_mask[..., None] > 0.5)
         frame.geometry = g
+    return stage
+
+
+def with_true_ao(ao_stage, truth: dict):
+    """The AO stage, then the factory's AO (full frame) in the net's map over the true mask."""
+    def stage(frame, options, models):
+        ao_stage(frame, options, models)
+        inside = compose.crop_square(truth["mask"].astype(np.float32), frame.box)
+        true_ao = compose.crop_square(truth["ao"].astype(np.float32), frame.box)
+        frame.ao_net = (inside * true_ao + (1.0 - inside) * frame.ao_net).astype(np.float32)
+        frame.ao = frame.ao_net
     return stage
 
 
@@ -165,6 +178,8 @@ def measure(folder: Path, truth: dict, rows: tuple, models: Models) -> dict:
                 stages.STAGES["body"] = with_true_world(kept["body"], meta)
             if row == "true normals":
                 stages.STAGES["geometry"] = with_true_normals(kept["geometry"], scene.normal)
+            if row == "true AO":
+                stages.STAGES["ao"] = with_true_ao(kept["ao"], truth)
             if row in ("true depth", "true geometry"):
                 stages.STAGES["geometry"] = with_true_geometry(kept["geometry"], truth, normals=row == "true geometry")
             source = {"true light": "true-light-own-level", "true light, net level": "true-light"}.get(row, "")

@@ -58,3 +58,21 @@ def test_the_true_body_fills_the_crop_as_the_render_placed_it(body):
     np.testing.assert_allclose(np.ptp(crop[used, 2]), np.ptp(body.vertices[used, 2]) * 4 / 3, rtol=1e-6)
     top = body.vertices[used, 1].max()  # y = 1.9 m is photo row 0, 4 rows above the crop's top
     np.testing.assert_allclose(crop[used, 1].max(), 1.0 - ((1.9 - top) * 32 - 4) * 2 / 48, rtol=1e-6)
+
+
+def test_the_true_ao_replaces_the_nets_map_over_the_true_mask_only():
+    class Frame:
+        box = CropBox(0, 0, 8, 8)
+
+    def net_stage(frame, options, models):
+        frame.ao_net = np.full((8, 8), 0.5, np.float32)
+        frame.ao = frame.ao_net
+
+    mask = np.zeros((8, 8), np.float32)
+    mask[2:6, 3:5] = 1.0
+    truth = {"mask": mask, "ao": np.full((8, 8), 0.9, np.float32)}
+    frame = Frame()
+    oracles.with_true_ao(net_stage, truth)(frame, None, None)
+    np.testing.assert_allclose(frame.ao_net[mask > 0], 0.9)
+    np.testing.assert_allclose(frame.ao_net[mask == 0], 0.5)
+    assert frame.ao is frame.ao_net
