@@ -44,14 +44,14 @@ SETS = {
                [generate("data/factory512test60", 60, "test=1", 512, 21, *ONE_EACH),
                 scenes("data/factory512test60", "data/eval512p60", "test")]),
     "factory256": ("the nets' training set: 2,400 training and 300 validation samples at 256, "
-                   "catalogue poses (~50 min; the models' card's set, without its test split)",
+                   "catalogue poses (~70 min at ~40 a minute; the models' card's set, without its test split)",
                    [generate("data/factory256", 2700, "train=0.8,val=0.1", 256, 0)]),
     "factory256-normals": ("factory256's geometry-net normals, the de-lighting net's input (~15 min)",
                            [["-m", "export.factory.coarse", "data/factory256", "--normals-only",
                              "--splits", "train,val"]]),
     "factory256-priors": ("factory256's fitted bodies' maps, the geometry prior net's input (~70 min)",
                           [["-m", "export.factory.coarse", "data/factory256", "--priors", "--splits", "train,val"]]),
-    "factory256v": ("7,600 more training samples at 256, poses mixed (~2.5 hours)",
+    "factory256v": ("7,600 more training samples at 256, poses mixed (~3 hours)",
                     [generate("data/factory256v", 7600, "train=1", 256, 1, *MIXED)]),
 }
 
