@@ -12,6 +12,11 @@ truth) and the luminance correlation over the texels. Albedo and relit PSNR by t
 protocol (relightcli.evaluate), as is and with an oracle per-channel gain on the albedo (the
 gain that gives it the true albedo's mean over the person), so level and shape errors are seen
 apart; the seconds of the de-lighting stage. Writes --out (JSON) and prints a table.
+
+    RELIGHT_MODELS_DIR=DIR python bench/light_solve.py ... --sources solve solve-level-from --level-from models
+
+scores DIR's de-lighting net with its own level and with the albedo's level from another
+folder's net (here the shipped one): one net's shape, the other's level.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from relightcli.batch import ItemReport  # noqa: E402
 from relightcli.evaluate import find_scenes, layer_metrics, load_scene  # noqa: E402
 from relightcli.io.envmap import load_envmap, texel_directions, texel_solid_angles  # noqa: E402
 from relightcli.io.images import read_image  # noqa: E402
+from relightcli.nets.delight import DelightNet  # noqa: E402
 from relightcli.pipeline import RelightOptions, run_stages  # noqa: E402
 from relightcli.render.sh import project_sh  # noqa: E402
 from relightcli.stages import delight  # noqa: E402
@@ -43,6 +49,9 @@ from relightcli.stages.frame import Models  # noqa: E402
 SOURCES = ("ratio", "solve")
 # The truth in place of one quantity (substituted)
 ORACLES = ("true-light", "true-light-own-level")
+# The solve with the albedo's level from another models folder's de-lighting net (--level-from):
+# one net's albedo shape, another's level
+LEVEL_FROM = "solve-level-from"
 
 
 def light_errors(estimate: np.ndarray, truth: np.ndarray) -> dict:
@@ -120,12 +129,26 @@ def albedo_metrics(frame, scene) -> dict:
 
 
 @contextlib.contextmanager
-def substituted(source: str, light: np.ndarray):
+def substituted(source: str, light: np.ndarray, level_net=None):
     """The pipeline with the truth in place of one quantity for the oracle sources: the true
     input light (in the photo's units) for the solved one, and with "-own-level" the albedo
-    left at that light's level instead of the net's."""
+    left at that light's level instead of the net's. LEVEL_FROM: the ratio albedo's one gain
+    taken to `level_net`'s albedo (a DelightNet of another models folder, run as the stage runs
+    its own) instead of the models folder's net's."""
     saved = delight.solve_input_light, compose.albedo_gain
     try:
+        if source == LEVEL_FROM:
+            seen = {}
+            solve, gain = delight.solve_input_light, compose.albedo_gain
+
+            def solve_and_keep(frame, net_albedo, options, models):
+                seen.update(frame=frame, options=options)
+                return solve(frame, net_albedo, options, models)
+
+            def other_gain(ratio, net_albedo, mask, *args, **kwargs):
+                level_albedo = delight.net_estimate(seen["frame"], level_net, seen["options"]).albedo
+                return gain(ratio, level_albedo, mask, *args, **kwargs)
+            delight.solve_input_light, compose.albedo_gain = solve_and_keep, other_gain
         if source.startswith("true-light"):
             def true_light(frame, net_albedo, options, models):
                 delight.ensure_scenes(frame, options, models)
@@ -141,14 +164,14 @@ def substituted(source: str, light: np.ndarray):
         delight.solve_input_light, compose.albedo_gain = saved
 
 
-def measure(folder: Path, truth: dict, source: str, use_gt_mask: bool, models) -> dict:
+def measure(folder: Path, truth: dict, source: str, use_gt_mask: bool, models, level_net=None) -> dict:
     scene = load_scene(folder)
     gains = np.asarray(json.loads((folder / "scene.json").read_text())["spec"]["augmentation"]["gains"], np.float32)
     options = RelightOptions(outputs=("relit", "albedo", "light"), method="raytrace-norefine",
-                             albedo="solve" if source in ORACLES else source, threads=2)
+                             albedo="solve" if source in ORACLES + (LEVEL_FROM,) else source, threads=2)
     image = read_image(scene.input_path)
     report = ItemReport(str(folder))
-    with substituted(source, truth["light_a"] * gains):
+    with substituted(source, truth["light_a"] * gains, level_net):
         frame, _ = run_stages(image.rgb, scene.mask if use_gt_mask else None, load_envmap(scene.target_path),
                               options, report, models)
     return {**light_errors(frame.light, truth["light_a"] * gains), **input_errors(frame, truth, gains),
@@ -177,16 +200,21 @@ def main() -> int:
     parser.add_argument("factory", help="the factory dataset they came from (its light_a)")
     parser.add_argument("--split", default="test")
     parser.add_argument("--use-gt-mask", action="store_true")
-    parser.add_argument("--sources", nargs="+", default=list(SOURCES), choices=SOURCES + ORACLES)
+    parser.add_argument("--sources", nargs="+", default=list(SOURCES), choices=SOURCES + ORACLES + (LEVEL_FROM,))
+    parser.add_argument("--level-from", type=Path,
+                        help=f"a models folder whose de-lighting net gives the albedo's level ({LEVEL_FROM})")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if (LEVEL_FROM in args.sources) != (args.level_from is not None):
+        parser.error(f"--sources {LEVEL_FROM} and --level-from DIR go together")
     data, models = dataset.open_dataset(args.factory), Models(2)
+    level_net = DelightNet(models_dir=args.level_from, threads=2) if args.level_from else None
     rows = {source: [] for source in args.sources}
     for folder in find_scenes(args.scenes):
         truth = data.load(args.split, folder.name.split("_", 1)[1])
         for source in args.sources:
             try:
-                rows[source].append({"scene": folder.name, **measure(folder, truth, source, args.use_gt_mask, models)})
+                rows[source].append({"scene": folder.name, **measure(folder, truth, source, args.use_gt_mask, models, level_net)})
             except Exception as error:  # noqa: BLE001 - a failed scene is reported, the others count
                 rows[source].append({"scene": folder.name, "error": str(error)})
         print(folder.name, {s: {k: round(v, 3) for k, v in rows[s][-1].items() if isinstance(v, float)}

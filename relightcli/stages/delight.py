@@ -45,16 +45,8 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     from relightcli.render.environment import EnvironmentLight
     from relightcli.render.sh import project_sh, sh_irradiance_shading
 
-    net = models.get("delight")
-    side = net_side(net, options.resolution)
-    image, normal = resample(frame.crop, side), unit(resample(frame.normal, side))
-    result = net.predict(image, normal)
-    if "delight" in MIRROR_AVERAGED:
-        mirrored = net.predict(mirror(image), mirror(normal, (0,)))
-        result = replace(result, albedo=0.5 * (result.albedo + mirror(mirrored.albedo)),
-                         light=0.5 * (result.light + mirror(mirrored.light)))
-    albedo = resample(result.albedo, options.resolution)
-    frame.light = result.light
+    result = net_estimate(frame, models.get("delight"), options)
+    albedo, frame.light = result.albedo, result.light
     if options.albedo == "solve":
         solved, frame.light = solve_input_light(frame, albedo, options, models)
         start = time.perf_counter()
@@ -77,6 +69,20 @@ def stage_delight(frame: Frame, options, models: Models) -> None:
     inside = frame.crop_mask > 0.5
     albedo = fill_uncovered(albedo, inside, frame.crop_mask > 0) if inside.any() else albedo
     frame.albedo = albedo * person_support(frame)
+
+
+def net_estimate(frame: Frame, net, options):
+    """The de-lighting net's DelightResult on the frame's crop and normals at the side the net
+    learned on (the photo and its mirror averaged when "delight" is in MIRROR_AVERAGED), its
+    albedo resampled to the working resolution."""
+    side = net_side(net, options.resolution)
+    image, normal = resample(frame.crop, side), unit(resample(frame.normal, side))
+    result = net.predict(image, normal)
+    if "delight" in MIRROR_AVERAGED:
+        mirrored = net.predict(mirror(image), mirror(normal, (0,)))
+        result = replace(result, albedo=0.5 * (result.albedo + mirror(mirrored.albedo)),
+                         light=0.5 * (result.light + mirror(mirrored.light)))
+    return replace(result, albedo=resample(result.albedo, options.resolution))
 
 
 # The solved light's shading may dip below its surroundings (a Gaussian of this share of the
