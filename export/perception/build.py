@@ -217,7 +217,8 @@ def write_notice(out: Path, archive_path: Path, archive: Archive) -> None:
         f"from the {archive.requirement} package (PyPI file {archive.file},\n"
         f"sha256 {archive.sha256}), Copyright The MediaPipe Authors, licensed under the\n"
         f"Apache License 2.0 ({LICENSE_FILE}). The conversion changes the file format and the\n"
-        f"weights' storage (float16 and sparse weights decoded to dense float32), not the networks.\n\n"
+        f"weights' storage (sparse weights decoded to dense; float16 weights kept as float16, cast\n"
+        f"to float32 in the graph), not the networks.\n\n"
         f"{names}\n\n"
         "The other models in this folder are relightcli's own (see MODEL_CARD.md and manifest.json).\n")
 

@@ -7,7 +7,8 @@ activation is NCHW: the graph input is transposed once on the way in and every 4
 on the way out, so the ONNX model keeps the TFLite model's I/O shapes (optionally renamed).
 
 Constants are folded at conversion: fp16 weights (DEQUANTIZE of a constant) and sparse weights
-(DENSIFY of a constant, TFLite's sparse tensor format) become dense float32 initializers.
+(DENSIFY of a constant, TFLite's sparse tensor format) become dense float32 values, stored as
+float16 initializers with a Cast to float32 where every value is a float16 (Graph.constant).
 Reads the flatbuffer with the `tflite` package's generated schema; writes with onnx.helper.
 """
 
@@ -113,9 +114,26 @@ class Graph:
         return outputs[0]
 
     def constant(self, array: np.ndarray, stem: str = "const") -> str:
+        """An initializer; a float32 one whose every value is a float16 (the fp16 weights) is
+        stored as float16 and cast back to float32 in the graph: half the file, the same values
+        (ONNX Runtime folds the Cast when it builds the session)."""
+        array = np.ascontiguousarray(array)
         name = self.fresh(stem)
-        self.initializers.append(numpy_helper.from_array(np.ascontiguousarray(array), name))
+        if array.dtype == np.float32 and array.size >= HALF_MIN_SIZE and is_float16_exact(array):
+            self.initializers.append(numpy_helper.from_array(array.astype(np.float16), f"{name}_fp16"))
+            self.node("Cast", [f"{name}_fp16"], [name], to=TensorProto.FLOAT)
+        else:
+            self.initializers.append(numpy_helper.from_array(array, name))
         return name
+
+
+# Smaller float32 constants (biases, shapes' scalars) stay float32: a Cast would save little
+HALF_MIN_SIZE = 1024
+
+
+def is_float16_exact(array: np.ndarray) -> bool:
+    """Whether every value of a float32 array survives a round trip through float16."""
+    return bool(np.array_equal(array.astype(np.float16).astype(np.float32), array))
 
 
 class Converter:
