@@ -16,7 +16,8 @@ apart; the seconds of the de-lighting stage. Writes --out (JSON) and prints a ta
     RELIGHT_MODELS_DIR=DIR python bench/light_solve.py ... --sources solve solve-level-from --level-from models
 
 scores DIR's de-lighting net with its own level and with the albedo's level from another
-folder's net (here the shipped one): one net's shape, the other's level.
+folder's net (here the shipped one): one net's shape, the other's level. `--delight-once`: the
+de-lighting nets run on the photo alone (the stage averages the photo's and its mirror's).
 """
 
 from __future__ import annotations
@@ -164,6 +165,11 @@ def substituted(source: str, light: np.ndarray, level_net=None):
         delight.solve_input_light, compose.albedo_gain = saved
 
 
+def delight_once() -> None:
+    """The de-lighting stage's nets (its own and --level-from's) run on the photo alone."""
+    delight.MIRROR_AVERAGED = tuple(f for f in delight.MIRROR_AVERAGED if f != "delight")
+
+
 def measure(folder: Path, truth: dict, source: str, use_gt_mask: bool, models, level_net=None) -> dict:
     scene = load_scene(folder)
     gains = np.asarray(json.loads((folder / "scene.json").read_text())["spec"]["augmentation"]["gains"], np.float32)
@@ -203,8 +209,12 @@ def main() -> int:
     parser.add_argument("--sources", nargs="+", default=list(SOURCES), choices=SOURCES + ORACLES + (LEVEL_FROM,))
     parser.add_argument("--level-from", type=Path,
                         help=f"a models folder whose de-lighting net gives the albedo's level ({LEVEL_FROM})")
+    parser.add_argument("--delight-once", action="store_true",
+                        help="the de-lighting nets run on the photo alone, not on it and its mirror averaged")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
+    if args.delight_once:
+        delight_once()
     if (LEVEL_FROM in args.sources) != (args.level_from is not None):
         parser.error(f"--sources {LEVEL_FROM} and --level-from DIR go together")
     data, models = dataset.open_dataset(args.factory), Models(2)

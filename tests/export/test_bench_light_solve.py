@@ -36,3 +36,25 @@ def test_the_level_comes_from_the_other_net_and_everything_is_restored(monkeypat
     assert solved == [(frame, own, options, "models")]
     assert (delight.solve_input_light, compose.albedo_gain) == before
     assert compose.albedo_gain(ratio, own, mask) == pytest.approx(2.0)
+
+
+def test_delight_once_runs_the_net_on_the_photo_alone(monkeypatch):
+    calls = []
+
+    class Net:
+        trained_resolution = 8
+
+        def predict(self, image, normal):
+            calls.append(image)
+            return DelightResult(albedo=image, light=np.zeros((16, 32, 3), np.float32))
+
+    frame = SimpleNamespace(crop=np.random.default_rng(0).uniform(size=(8, 8, 3)).astype(np.float32),
+                            normal=np.tile(np.float32([0.0, 0.0, 1.0]), (8, 8, 1)))
+    options = SimpleNamespace(resolution=8)
+    delight.net_estimate(frame, Net(), options)
+    assert len(calls) == 2  # the photo and its mirror
+    monkeypatch.setattr(delight, "MIRROR_AVERAGED", delight.MIRROR_AVERAGED)
+    light_solve.delight_once()
+    calls.clear()
+    assert delight.net_estimate(frame, Net(), options).albedo == pytest.approx(frame.crop)
+    assert len(calls) == 1
