@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.perception.tflite_onnx import DENSE, SPARSE_CSR, DimMetadata, densify, same_pads
+from export.perception.tflite_onnx import DENSE, HALF_MIN_SIZE, SPARSE_CSR, DimMetadata, Graph, densify, same_pads
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -64,6 +64,27 @@ def test_same_pads_follow_tensorflow(size, kernel, stride, expected):
     assert same_pads(size, kernel, stride) == expected
     before, after = expected
     assert (size + before + after - kernel) // stride + 1 == -(-size // stride)  # SAME keeps ceil(size / stride)
+
+
+def test_fp16_weights_are_stored_as_fp16_and_cast_back_to_the_same_values():
+    import onnx
+    from onnx import helper, numpy_helper
+    from onnxruntime import InferenceSession
+
+    rng = np.random.default_rng(0)
+    half = rng.normal(size=(4, HALF_MIN_SIZE)).astype(np.float16).astype(np.float32)
+    full = half + np.float32(1e-6)  # not a float16 any more
+    graph = Graph()
+    names = [graph.constant(a) for a in (half, full, half[:1, :8])]
+    stored = {i.name: numpy_helper.to_array(i).dtype for i in graph.initializers}
+    assert stored == {f"{names[0]}_fp16": np.float16, names[1]: np.float32, names[2]: np.float32}
+    outputs = [helper.make_tensor_value_info(n, onnx.TensorProto.FLOAT, None) for n in names]
+    model = helper.make_model(helper.make_graph(graph.nodes, "g", [], outputs, graph.initializers),
+                              opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    got = InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {})
+    for value, want in zip(got, (half, full, half[:1, :8])):
+        assert value.dtype == np.float32 and np.array_equal(value, want)
 
 
 # ----------------------------------------------------------------------------- the export command
