@@ -27,7 +27,9 @@ class DelightNet(ModelSession):
 
     def predict(self, image: np.ndarray, normal: np.ndarray) -> DelightResult:
         """image: (H, W, 3) float32 linear RGB in [0, 1]; normal: (H, W, 3) unit normals in the
-        camera frame, zero outside the person."""
+        camera frame, zero outside the person. The albedo is multiplied by the manifest's
+        `calibration.albedo_gain` when it has one: the level convention a net is brought to
+        (a photo cannot tell its albedo's level; nets trained alike land up to ~0.2 stops apart)."""
         check_hwc(image, 3, "image")
         check_hwc(normal, 3, "normal")
         if image.shape != normal.shape:
@@ -35,4 +37,8 @@ class DelightNet(ModelSession):
         padded_image, pad = pad_to_multiple(image, self.multiple, "reflect")
         padded_normal, _ = pad_to_multiple(normal, self.multiple, "reflect")
         out = self.run({"image": hwc_to_nchw(padded_image), "normal": hwc_to_nchw(padded_normal)})
-        return DelightResult(albedo=crop_padding(nchw_to_hwc(out["albedo"]), pad), light=nchw_to_hwc(out["light"]))
+        albedo = crop_padding(nchw_to_hwc(out["albedo"]), pad)
+        gain = float(self.entry.calibration.get("albedo_gain", 1.0))
+        if gain != 1.0:
+            albedo = albedo * np.float32(gain)
+        return DelightResult(albedo=albedo, light=nchw_to_hwc(out["light"]))

@@ -66,6 +66,7 @@ class ModelEntry:
     metrics: dict = field(default_factory=dict)
     kind: str = "onnx"  # "onnx" for networks, "data" for other files the runtime reads
     description: str = ""
+    calibration: dict = field(default_factory=dict)  # constants applied to the outputs (DelightNet: albedo_gain)
 
     @property
     def trained_resolution(self) -> int | None:
@@ -153,6 +154,7 @@ def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) ->
         config=spec.get("config", {}),
         training_data=spec.get("training_data", {}),
         metrics=spec.get("metrics", {}),
+        calibration=spec.get("calibration", {}),
         kind=kind,
         description=spec.get("description", ""),
     )
