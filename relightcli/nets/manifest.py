@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -142,6 +143,11 @@ def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) ->
     except (KeyError, TypeError, ValueError) as exc:
         raise MissingDependencyError(f"model {name!r} has a malformed I/O contract: {exc}",
                                      path=manifest_path, fix=MODELS_FIX) from exc
+    calibration = spec.get("calibration", {})
+    gain = calibration.get("albedo_gain", 1.0) if isinstance(calibration, dict) else None
+    if not (isinstance(gain, (int, float)) and not isinstance(gain, bool) and math.isfinite(gain) and gain > 0):
+        raise MissingDependencyError(f"model {name!r} has a calibration whose albedo_gain is not a positive "
+                                     f"number: {calibration!r}", path=manifest_path, fix=MODELS_FIX)
     return ModelEntry(
         name=name,
         path=directory / spec["file"],
@@ -154,7 +160,7 @@ def _parse_entry(name: str, spec: dict, directory: Path, manifest_path: Path) ->
         config=spec.get("config", {}),
         training_data=spec.get("training_data", {}),
         metrics=spec.get("metrics", {}),
-        calibration=spec.get("calibration", {}),
+        calibration=calibration,
         kind=kind,
         description=spec.get("description", ""),
     )

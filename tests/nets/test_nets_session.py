@@ -164,6 +164,16 @@ def test_manifest_entry_without_sha(tmp_path):
         load_manifest(tmp_path)
 
 
+@pytest.mark.parametrize("calibration", [{"albedo_gain": 0}, {"albedo_gain": "0.85"}, {"albedo_gain": float("nan")}, [0.85]])
+def test_a_calibration_that_is_not_a_positive_gain_names_the_manifest(tmp_path, calibration):
+    (tmp_path / "manifest.json").write_text(json.dumps({"version": 1, "models": {"delight": {
+        "file": "delight.onnx", "sha256": "0" * 64, "inputs": [], "outputs": [], "multiple": 32,
+        "calibration": calibration}}}))
+    with pytest.raises(MissingDependencyError, match="albedo_gain") as error:
+        load_manifest(tmp_path)
+    assert "manifest.json" in str(error.value)
+
+
 def test_each_input_shape_runs_on_a_session_built_for_it_whatever_was_prepared(ao_model_dir):
     """run_size: the session for (1, C, S, S) is built up front; any other shape gets its own the
     first time it comes. A shape gives the same bytes whichever sizes the process prepared."""
