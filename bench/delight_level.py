@@ -8,6 +8,11 @@ levels side by side say how far apart their conventions are.
 
     python bench/delight_level.py data/factory256 models data/models_d2x2400 --skip 100 --count 200 \
         --out bench/results/delight_level_factory256.json
+
+`calibration` (what `net_curves.py export/ship --calibrate-to` writes into a new net's manifest
+entry) is the albedo gain that brings a net's median level to a reference net's on the same
+samples: a photo cannot tell its albedo's level, and nets trained alike land up to ~0.2 stops
+apart (docs/RESULTS.md, "The wider net at full length, and the level each net keeps").
 """
 
 from __future__ import annotations
@@ -56,6 +61,31 @@ def net_albedo(net, sample: dict) -> np.ndarray:
     return net_estimate(frame, net, SimpleNamespace(resolution=side)).albedo
 
 
+def measure(models: Path, data, split: str, ids: list) -> dict:
+    """summarise() of one models folder's de-lighting net (its manifest's calibration applied) on
+    the samples `ids` of `data`'s `split`, with its rows."""
+    from relightcli.nets.delight import DelightNet
+
+    net = DelightNet(models_dir=models, threads=2)
+    rows = []
+    for sample_id in ids:
+        sample = data.load(split, sample_id, ("input", "normal_pred", "albedo", "mask"))
+        rows.append({"id": sample_id, **sample_row(sample, net_albedo(net, sample))})
+    return {**summarise(rows), "rows": rows}
+
+
+def calibration(net: dict, reference: dict, where: str) -> dict:
+    """The manifest's `calibration` for a net whose level (measure()'s summary, measured without
+    a calibration) is to be the reference's: its albedo times 2 ** (net's median level - the
+    reference's), with what it was measured on."""
+    stops = net["level_median"] - reference["level_median"]
+    return {"albedo_gain": round(float(2.0 ** stops), 4),
+            "why": "the reference net's level convention: a photo cannot tell its albedo's level "
+                   "(bench/delight_level.py)",
+            "measured": {"on": where, "samples": net["samples"], "level_median_stops": round(net["level_median"], 4),
+                         "reference_level_median_stops": round(reference["level_median"], 4)}}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", help="a factory set with the geometry net's normals (normal_pred)")
@@ -65,19 +95,11 @@ def main() -> int:
     parser.add_argument("--count", type=int, default=200)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
-    from relightcli.nets.delight import DelightNet
-
     data = dataset.open_dataset(args.data)
     ids = list(data.ids(args.split))[args.skip:args.skip + args.count]
     results = {}
     for folder in args.models:
-        net = DelightNet(models_dir=folder, threads=2)
-        rows = []
-        for sample_id in ids:
-            sample = data.load(args.split, sample_id, ("input", "normal_pred", "albedo", "mask"))
-            rows.append({"id": sample_id, **sample_row(sample, net_albedo(net, sample))})
-        results[str(folder)] = {**summarise(rows), "rows": rows}
-        summary = results[str(folder)]
+        results[str(folder)] = summary = measure(folder, data, args.split, ids)
         print(f"{folder}: {summary['samples']} samples, level median {summary['level_median']:+.3f} / mean "
               f"{summary['level_mean']:+.3f} / RMS {summary['level_rms']:.3f} stops; albedo PSNR "
               + " ".join(f"{s:+.1f}:{p:.3f}" for s, p in zip(summary["shifts"], summary["psnr"]))

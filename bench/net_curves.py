@@ -25,6 +25,9 @@ folded by its exporter, stay in eval mode); `--lr` another peak learning rate th
 (..._lrLR), `--set KEY=JSON ...` other settings of the trainer's config (..._KEYJSON).
 `ship --run RUN` exports a scored run's net into models/ (manifest entry with its scores).
 `export --run RUN --to DIR` makes DIR a copy of models/ with the run's net, for other bench scripts.
+With `--calibrate-to MODELS` either one sets the de-lighting net's `calibration` in its entry: the
+albedo gain that brings its median level to MODELS' net's on --data's validation samples 100-299
+(bench/delight_level.py; `--calibrate-to models` keeps the shipped net's level convention).
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -193,13 +196,51 @@ def models_with_run(run: Path, family: str, data: str, step: int, models: Path) 
     return models
 
 
+# The validation samples a de-lighting net's level is calibrated on (skip, count): not the 100
+# its trainer validated on
+CALIBRATION_SAMPLES = (100, 200)
+
+
+def level_reference(args) -> dict | None:
+    """bench/delight_level.py's measure() of --calibrate-to's de-lighting net, or None."""
+    if not args.calibrate_to:
+        return None
+    if args.family != "delight":
+        raise SystemExit("--calibrate-to is for the de-lighting net (--family delight)")
+    import delight_level
+
+    data = delight_level.dataset.open_dataset(args.data)
+    skip, count = CALIBRATION_SAMPLES
+    ids = list(data.ids("val"))[skip:skip + count]
+    return {"ids": ids, **delight_level.measure(Path(args.calibrate_to), data, "val", ids)}
+
+
+def calibrate(models: Path, reference: dict | None, args) -> None:
+    """Set the de-lighting net's calibration in `models`' manifest: its level brought to the
+    reference's (level_reference), measured on the same samples."""
+    if reference is None:
+        return
+    import delight_level
+    from export.manifest import update_manifest
+
+    data = delight_level.dataset.open_dataset(args.data)
+    net = delight_level.measure(models, data, "val", reference["ids"])
+    where = f"{args.data} val samples {CALIBRATION_SAMPLES[0]}-{CALIBRATION_SAMPLES[0] + len(reference['ids']) - 1}"
+    entry = json.loads((models / "manifest.json").read_text())["models"]["delight"]
+    entry["calibration"] = {**delight_level.calibration(net, reference, where), "reference": args.calibrate_to}
+    update_manifest(models, "delight", entry)
+    print(json.dumps(entry["calibration"]))
+
+
 def export(args) -> None:
     """A models folder with one run's net, for the bench scripts that score more than `score`
     does (e.g. bench/light_solve.py's level split, RELIGHT_MODELS_DIR=TO)."""
     run = Path(args.runs) / args.run
     if Path(args.to).exists():
         raise SystemExit(f"{args.to} exists: name a new folder")
+    reference = level_reference(args)
     models_with_run(run, args.family, args.data, last_record(run / "log.jsonl").get("step", 0), Path(args.to))
+    calibrate(Path(args.to), reference, args)
     print(args.to)
 
 
@@ -295,6 +336,7 @@ def ship(args) -> None:
               for key, value in kept.items() if key.startswith(f"{step} {version} ")}
     if not scores:
         raise SystemExit(f"{run.name} has no scores at step {step} with today's pipeline: run `score --eval` first")
+    reference = level_reference(args)  # before the shipped net is replaced
     subprocess.run(export_command(args.family, run, args.data, step, ROOT / "models"), cwd=ROOT, check=True)
     from export.manifest import update_manifest
 
@@ -302,6 +344,7 @@ def ship(args) -> None:
     entry["metrics"]["pipeline"] = scores
     entry["training"]["run_dir"] = str(run.relative_to(ROOT) if run.is_relative_to(ROOT) else run)
     update_manifest(ROOT / "models", args.family, entry)
+    calibrate(ROOT / "models", reference, args)
     print(json.dumps(entry["metrics"], indent=1))
 
 
@@ -332,6 +375,9 @@ def main() -> None:
     sub.choices["ship"].add_argument("--run", required=True, help="the run (a name in --runs) to ship")
     sub.choices["export"].add_argument("--run", required=True, help="the run (a name in --runs) to export")
     sub.choices["export"].add_argument("--to", required=True, help="a new folder: the shipped models with the run's net")
+    for name in ("ship", "export"):
+        sub.choices[name].add_argument("--calibrate-to", help="a models folder whose de-lighting net's albedo level "
+                                       "the run's net is brought to (its manifest's calibration)")
     args = parser.parse_args()
     if args.command == "train":
         args.steps = args.steps or STEPS[args.family]

@@ -94,7 +94,7 @@ def test_ship_records_the_runs_scores_in_its_manifest_entry(tmp_path, monkeypatc
     run = tmp_path / "runs" / "r"
     run.mkdir(parents=True)
     (run / "log.jsonl").write_text(json.dumps({"step": 1000}) + "\n")
-    args = Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r")
+    args = Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", calibrate_to=None)
     commands = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: commands.append(command))
     with pytest.raises(SystemExit, match="score --eval"):  # not scored yet
@@ -137,10 +137,55 @@ def test_export_makes_a_models_folder_with_the_runs_net(tmp_path, monkeypatch):
     commands = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: commands.append(command))
     to = tmp_path / "out" / "models_r"
-    net_curves.export(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", to=str(to)))
+    net_curves.export(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", to=str(to),
+                                     calibrate_to=None))
     assert (to / "manifest.json").read_text() == "{}"
     [command] = commands
     assert command[command.index("--export-to") + 1] == str(to)
     assert command[command.index("--steps") + 1] == "700"
     with pytest.raises(SystemExit, match="exists"):
-        net_curves.export(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", to=str(to)))
+        net_curves.export(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", to=str(to),
+                                     calibrate_to=None))
+
+
+def test_a_calibrated_ship_brings_the_new_nets_level_to_the_shipped_nets(tmp_path, monkeypatch):
+    """--calibrate-to measures the reference net before the export replaces it, then the new net
+    on the same samples, and writes the gain that moves the new net's median level onto the
+    reference's into the manifest entry (a level > 0: the net's albedo darker than the truth)."""
+    import subprocess
+    from argparse import Namespace
+
+    import delight_level
+
+    (tmp_path / "models").mkdir()
+    entry = {"sha256": "x", "metrics": {}, "training": {}}
+    (tmp_path / "models" / "manifest.json").write_text(json.dumps({"version": 1, "models": {"delight": entry}}))
+    monkeypatch.setattr(net_curves, "ROOT", tmp_path)
+    run = tmp_path / "runs" / "r"
+    run.mkdir(parents=True)
+    (run / "log.jsonl").write_text(json.dumps({"step": 1000}) + "\n")
+    version = net_curves.pipeline_version()
+    (run / "pipeline.json").write_text(json.dumps({f"1000 {version} SETS": {"relit": 17.8}}))
+    events = []
+    monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: events.append("export"))
+
+    class Data:
+        def ids(self, split):
+            return [f"{split}_{i:06d}" for i in range(400)]
+
+    monkeypatch.setattr(delight_level.dataset, "open_dataset", lambda path: Data())
+
+    def measure(models, data, split, ids):
+        events.append(("measure", len(ids), ids[0]))
+        level = 0.2 if "export" not in events else -0.05  # the reference, then the new net
+        return {"samples": len(ids), "level_median": level, "rows": []}
+
+    monkeypatch.setattr(delight_level, "measure", measure)
+    args = Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r", calibrate_to="models")
+    net_curves.ship(args)
+    assert events == [("measure", 200, "val_000100"), "export", ("measure", 200, "val_000100")]
+    calibration = json.loads((tmp_path / "models" / "manifest.json").read_text())["models"]["delight"]["calibration"]
+    assert calibration["albedo_gain"] == round(2.0 ** -0.25, 4)  # 0.25 stops darker: the reference's level
+    assert calibration["measured"]["samples"] == 200 and calibration["reference"] == "models"
+    with __import__("pytest").raises(SystemExit, match="de-lighting"):
+        net_curves.level_reference(Namespace(family="ao", data="DATA", calibrate_to="models"))

@@ -49,3 +49,14 @@ def test_the_net_is_fed_the_photo_and_unit_normals_as_the_stage_feeds_it():
     albedo = delight_level.net_albedo(Net(), truth)
     assert albedo == pytest.approx(0.5 * truth["input"], abs=1e-6)  # the photo and its mirror, averaged back
     assert np.linalg.norm(seen[0], axis=-1) == pytest.approx(1.0)
+
+
+def test_the_calibration_moves_a_nets_median_level_onto_the_references():
+    net = {"samples": 200, "level_median": -0.05}
+    calibration = delight_level.calibration(net, {"level_median": 0.19}, "somewhere")
+    assert calibration["albedo_gain"] == pytest.approx(2.0 ** -0.24, abs=1e-4)
+    rng = np.random.default_rng(2)
+    truth = sample(rng)
+    light_albedo = truth["albedo"] * np.float32(2.0 ** 0.05)  # a net 0.05 stops light: level -0.05
+    level = delight_level.sample_row(truth, light_albedo * np.float32(calibration["albedo_gain"]))["level"]
+    assert level == pytest.approx(0.19, abs=1e-3)
