@@ -27,7 +27,9 @@ folded by its exporter, stay in eval mode); `--lr` another peak learning rate th
 `export --run RUN --to DIR` makes DIR a copy of models/ with the run's net, for other bench scripts.
 With `--calibrate-to MODELS` either one sets the de-lighting net's `calibration` in its entry: the
 albedo gain that brings its median level to MODELS' net's on --data's validation samples 100-299
-(bench/delight_level.py; `--calibrate-to models` keeps the shipped net's level convention).
+(bench/delight_level.py; `--calibrate-to models` keeps the shipped net's level convention);
+`score --eval ... --calibrate-to MODELS` scores the calibrated net, kept apart from the net as it
+is, and `ship --calibrate-to MODELS` then takes those scores.
 `score` reads each run's training CPU-hours; with --eval it also exports each finished run's
 net into a copy of models/ and runs the product's own `relight eval` on each set of scenes with
 it (relit, albedo, shading and the normals' error through the whole pipeline), beside the
@@ -244,18 +246,25 @@ def export(args) -> None:
     print(args.to)
 
 
-def pipeline_scores(run: Path, family: str, data: str, sets: list, config: dict) -> dict:
+def calibration_tag(args) -> str:
+    """What a calibrated net's scores are kept under beside the pipeline's version (no spaces)."""
+    return f"+calibrated-to:{args.calibrate_to}" if getattr(args, "calibrate_to", None) else ""
+
+
+def pipeline_scores(run: Path, family: str, data: str, sets: list, args=None, reference: dict | None = None) -> dict:
     """The product's eval on each set of scenes with this run's net in place of the shipped
-    one, and the net's run time ("seconds"); kept in the run's pipeline.json by step, pipeline
-    version and set, so a set is scored once per version."""
+    one (calibrated to `reference`'s level when given: calibrate), and the net's run time
+    ("seconds"); kept in the run's pipeline.json by step, pipeline version (and calibration)
+    and set, so a set is scored once per version."""
     step = last_record(run / "log.jsonl").get("step", 0)
     cache = run / "pipeline.json"
     kept = json.loads(cache.read_text()) if cache.is_file() else {}
-    version = pipeline_version()
+    version = pipeline_version() + (calibration_tag(args) if reference else "")
     wanted = [scenes for scenes in sets if f"{step} {version} {scenes}" not in kept]
     if wanted or f"{step} seconds" not in kept:
         with tempfile.TemporaryDirectory() as tmp:
             models = models_with_run(run, family, data, step, Path(tmp) / "models")
+            calibrate(models, reference, args)
             kept[f"{step} seconds"] = round(net_seconds(models / f"{family}.onnx"), 4)
             for scenes in wanted:
                 kept[f"{step} {version} {scenes}"] = eval_scores(models, scenes)
@@ -283,6 +292,7 @@ def shipped_scores(runs: Path, family: str, sets: list) -> dict:
 
 def score(args) -> None:
     rows = []
+    reference = level_reference(args) if args.eval else None
     if args.eval:  # the shipped net on the same scenes, for the comparison
         rows.append({"run": "shipped", "pipeline": shipped_scores(Path(args.runs), args.family, args.eval)})
         print(json.dumps(rows[-1]), flush=True)
@@ -296,7 +306,7 @@ def score(args) -> None:
                "step": log.get("step"), "cpu_hours": round(log.get("elapsed_s", 0) * THREADS / 3600, 2)}
         finished = row["step"] is not None and row["step"] >= config["steps"]
         if args.eval and finished:  # (exporting validates the net again: on the val split as it is now)
-            row["pipeline"] = pipeline_scores(run, args.family, args.data, args.eval, config)
+            row["pipeline"] = pipeline_scores(run, args.family, args.data, args.eval, args, reference)
         rows.append(row)
         print(json.dumps(row), flush=True)
     if args.out:
@@ -330,12 +340,14 @@ def ship(args) -> None:
     sets (`score --eval` first) as the entry's `metrics.pipeline`."""
     run = Path(args.runs) / args.run
     step = last_record(run / "log.jsonl").get("step", 0)
-    version = pipeline_version()
+    version = pipeline_version() + calibration_tag(args)
     kept = json.loads((run / "pipeline.json").read_text()) if (run / "pipeline.json").is_file() else {}
     scores = {key.split(" ", 2)[2]: {k: v for k, v in value.items() if k != "per_scene"}
               for key, value in kept.items() if key.startswith(f"{step} {version} ")}
     if not scores:
-        raise SystemExit(f"{run.name} has no scores at step {step} with today's pipeline: run `score --eval` first")
+        raise SystemExit(f"{run.name} has no scores at step {step} with today's pipeline"
+                         + (f" calibrated to {args.calibrate_to}" if args.calibrate_to else "")
+                         + ": run `score --eval` (with the same --calibrate-to) first")
     reference = level_reference(args)  # before the shipped net is replaced
     subprocess.run(export_command(args.family, run, args.data, step, ROOT / "models"), cwd=ROOT, check=True)
     from export.manifest import update_manifest
@@ -375,7 +387,7 @@ def main() -> None:
     sub.choices["ship"].add_argument("--run", required=True, help="the run (a name in --runs) to ship")
     sub.choices["export"].add_argument("--run", required=True, help="the run (a name in --runs) to export")
     sub.choices["export"].add_argument("--to", required=True, help="a new folder: the shipped models with the run's net")
-    for name in ("ship", "export"):
+    for name in ("score", "ship", "export"):
         sub.choices[name].add_argument("--calibrate-to", help="a models folder whose de-lighting net's albedo level "
                                        "the run's net is brought to (its manifest's calibration)")
     args = parser.parse_args()

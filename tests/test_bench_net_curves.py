@@ -165,7 +165,12 @@ def test_a_calibrated_ship_brings_the_new_nets_level_to_the_shipped_nets(tmp_pat
     run.mkdir(parents=True)
     (run / "log.jsonl").write_text(json.dumps({"step": 1000}) + "\n")
     version = net_curves.pipeline_version()
+    # the net as it is was scored, not calibrated: ship --calibrate-to wants the calibrated net's scores
     (run / "pipeline.json").write_text(json.dumps({f"1000 {version} SETS": {"relit": 17.8}}))
+    with __import__("pytest").raises(SystemExit, match="calibrated to models"):
+        net_curves.ship(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r",
+                                  calibrate_to="models"))
+    (run / "pipeline.json").write_text(json.dumps({f"1000 {version}+calibrated-to:models SETS": {"relit": 17.9}}))
     events = []
     monkeypatch.setattr(subprocess, "run", lambda command, **kwargs: events.append("export"))
 
@@ -187,5 +192,24 @@ def test_a_calibrated_ship_brings_the_new_nets_level_to_the_shipped_nets(tmp_pat
     calibration = json.loads((tmp_path / "models" / "manifest.json").read_text())["models"]["delight"]["calibration"]
     assert calibration["albedo_gain"] == round(2.0 ** -0.25, 4)  # 0.25 stops darker: the reference's level
     assert calibration["measured"]["samples"] == 200 and calibration["reference"] == "models"
+    shipped = json.loads((tmp_path / "models" / "manifest.json").read_text())["models"]["delight"]
+    assert shipped["metrics"]["pipeline"] == {"SETS": {"relit": 17.9}}  # the calibrated net's scores
     with __import__("pytest").raises(SystemExit, match="de-lighting"):
         net_curves.level_reference(Namespace(family="ao", data="DATA", calibrate_to="models"))
+
+
+def test_a_calibrated_nets_scores_are_kept_apart_from_the_net_as_it_is(tmp_path):
+    run = tmp_path / "small_double_2400"
+    run.mkdir()
+    (run / "log.jsonl").write_text(json.dumps({"step": 1800}) + "\n")
+    version = net_curves.pipeline_version()
+    calibrated = type("Args", (), {"calibrate_to": "models"})()
+    tag = net_curves.calibration_tag(calibrated)
+    assert tag == "+calibrated-to:models" and " " not in tag
+    assert net_curves.calibration_tag(type("Args", (), {"calibrate_to": None})()) == ""
+    kept = {"1800 seconds": 0.09, f"1800 {version} S": {"relit": 17.0}, f"1800 {version}{tag} S": {"relit": 17.5}}
+    (run / "pipeline.json").write_text(json.dumps(kept))
+    # both found in the cache: nothing is exported or run
+    assert net_curves.pipeline_scores(run, "delight", "DATA", ["S"])["S"] == {"relit": 17.0}
+    assert net_curves.pipeline_scores(run, "delight", "DATA", ["S"], calibrated, {"level_median": 0.2})["S"] == \
+        {"relit": 17.5}
