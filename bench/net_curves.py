@@ -9,7 +9,8 @@ capacity or of data? The de-lighting net (issue 47), the geometry prior net and 
     python bench/net_curves.py train --family geometry_prior --data data/factory256 \
         --runs data/curves_geometry --samples 2400 --sizes small
     python bench/net_curves.py train --family ao --data data/factory256 --runs data/curves_ao
-    python bench/net_curves.py ship --family delight --data data/factory256 --runs data/curves --run RUN
+    python bench/net_curves.py ship --family delight --data data/factory256 --runs data/curves --run RUN \
+        [--calibrate-to models] [--to bench/candidates/NAME]   # then: adopt bench/candidates/NAME
     python bench/net_curves.py export --family delight --data data/factory256 --runs data/curves --run RUN \
         --to /tmp/models_RUN   # then RELIGHT_MODELS_DIR=/tmp/models_RUN python bench/light_solve.py ...
 
@@ -23,7 +24,9 @@ the shipped de-lighting net trained). `--init models/delight.onnx` starts each r
 shipped file's weights instead (fine-tuning: SIZE_N..._from_delight; the file's BatchNorms,
 folded by its exporter, stay in eval mode); `--lr` another peak learning rate than the config's
 (..._lrLR), `--set KEY=JSON ...` other settings of the trainer's config (..._KEYJSON).
-`ship --run RUN` exports a scored run's net into models/ (manifest entry with its scores).
+`ship --run RUN` exports a scored run's net into models/ (manifest entry with its scores); with
+`--to DIR` into a candidate folder instead (the net's file and its entry alone, kept where the
+run's checkpoint is not: a session's data may not outlive it), which `adopt DIR` ships as it is.
 `export --run RUN --to DIR` makes DIR a copy of models/ with the run's net, for other bench scripts.
 With `--calibrate-to MODELS` either one sets the de-lighting net's `calibration` in its entry: the
 albedo gain that brings its median level to MODELS' net's on --data's validation samples 100-299
@@ -337,7 +340,8 @@ def score(args) -> None:
 def ship(args) -> None:
     """Export a run's net into models/ (its manifest entry: export.train's, which keeps the
     record of a file it was fine-tuned from) with the product's scores of it on the validation
-    sets (`score --eval` first) as the entry's `metrics.pipeline`."""
+    sets (`score --eval` first) as the entry's `metrics.pipeline`. With --to, into a new
+    candidate folder instead: the net's file and a manifest with its entry alone."""
     run = Path(args.runs) / args.run
     step = last_record(run / "log.jsonl").get("step", 0)
     version = pipeline_version() + calibration_tag(args)
@@ -348,16 +352,51 @@ def ship(args) -> None:
         raise SystemExit(f"{run.name} has no scores at step {step} with today's pipeline"
                          + (f" calibrated to {args.calibrate_to}" if args.calibrate_to else "")
                          + ": run `score --eval` (with the same --calibrate-to) first")
+    if getattr(args, "to", None) and Path(args.to).exists():
+        raise SystemExit(f"{args.to} exists: name a new folder")
     reference = level_reference(args)  # before the shipped net is replaced
-    subprocess.run(export_command(args.family, run, args.data, step, ROOT / "models"), cwd=ROOT, check=True)
+    if not getattr(args, "to", None):
+        ship_into(ROOT / "models", run, step, scores, reference, args)
+        return
     from export.manifest import update_manifest
 
-    entry = json.loads((ROOT / "models" / "manifest.json").read_text())["models"][args.family]
+    with tempfile.TemporaryDirectory() as tmp:
+        models = Path(tmp) / "models"
+        shutil.copytree(ROOT / "models", models)
+        entry = ship_into(models, run, step, scores, reference, args)
+        Path(args.to).mkdir(parents=True)
+        shutil.copy2(models / entry["file"], Path(args.to) / entry["file"])
+    update_manifest(args.to, args.family, entry)
+
+
+def ship_into(models: Path, run: Path, step: int, scores: dict, reference: dict | None, args) -> dict:
+    """The run's net at `step` exported into `models` with its scores and calibration; its entry."""
+    from export.manifest import update_manifest
+
+    subprocess.run(export_command(args.family, run, args.data, step, models), cwd=ROOT, check=True)
+    entry = json.loads((models / "manifest.json").read_text())["models"][args.family]
     entry["metrics"]["pipeline"] = scores
     entry["training"]["run_dir"] = str(run.relative_to(ROOT) if run.is_relative_to(ROOT) else run)
-    update_manifest(ROOT / "models", args.family, entry)
-    calibrate(ROOT / "models", reference, args)
+    update_manifest(models, args.family, entry)
+    calibrate(models, reference, args)
     print(json.dumps(entry["metrics"], indent=1))
+    return json.loads((models / "manifest.json").read_text())["models"][args.family]
+
+
+def adopt(args) -> None:
+    """Ship a candidate folder (`ship --to`) into models/ as it is: its net's file, checked
+    against its entry's sha256, and the entry."""
+    from export.manifest import update_manifest
+    from relightcli.nets.manifest import sha256_file
+
+    candidate = Path(args.candidate)
+    entry = json.loads((candidate / "manifest.json").read_text())["models"][args.family]
+    source = candidate / entry["file"]
+    if sha256_file(source) != entry["sha256"]:
+        raise SystemExit(f"{source} does not match its entry's sha256: make the candidate again (`ship --to`)")
+    shutil.copy2(source, ROOT / "models" / entry["file"])
+    update_manifest(ROOT / "models", args.family, entry)
+    print(f"models/{entry['file']}: {args.family} from {candidate}")
 
 
 def main() -> None:
@@ -390,11 +429,15 @@ def main() -> None:
     for name in ("score", "ship", "export"):
         sub.choices[name].add_argument("--calibrate-to", help="a models folder whose de-lighting net's albedo level "
                                        "the run's net is brought to (its manifest's calibration)")
+    sub.choices["ship"].add_argument("--to", help="a new candidate folder instead of models/ (`adopt` ships it)")
+    adopting = sub.add_parser("adopt", help="ship a candidate folder (`ship --to`) into models/")
+    adopting.add_argument("candidate")
+    adopting.add_argument("--family", choices=sorted(CONFIGS), default="delight")
     args = parser.parse_args()
     if args.command == "train":
         args.steps = args.steps or STEPS[args.family]
         args.crop = CROP.get(args.family) if args.crop is None else (args.crop or None)
-    {"train": train, "score": score, "ship": ship, "export": export}[args.command](args)
+    {"train": train, "score": score, "ship": ship, "export": export, "adopt": adopt}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -213,3 +213,46 @@ def test_a_calibrated_nets_scores_are_kept_apart_from_the_net_as_it_is(tmp_path)
     assert net_curves.pipeline_scores(run, "delight", "DATA", ["S"])["S"] == {"relit": 17.0}
     assert net_curves.pipeline_scores(run, "delight", "DATA", ["S"], calibrated, {"level_median": 0.2})["S"] == \
         {"relit": 17.5}
+
+
+def test_a_candidate_ships_into_its_own_folder_and_adopt_ships_it_as_it_is(tmp_path, monkeypatch):
+    import subprocess
+    from argparse import Namespace
+
+    from export.manifest import update_manifest
+    from relightcli.nets.manifest import sha256_file
+
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "delight.onnx").write_bytes(b"the shipped net")
+    update_manifest(models, "delight", {"file": "delight.onnx", "sha256": sha256_file(models / "delight.onnx"),
+                                        "metrics": {}, "training": {}})
+    monkeypatch.setattr(net_curves, "ROOT", tmp_path)
+    run = tmp_path / "runs" / "r"
+    run.mkdir(parents=True)
+    (run / "log.jsonl").write_text(json.dumps({"step": 1800}) + "\n")
+    (run / "pipeline.json").write_text(json.dumps({f"1800 {net_curves.pipeline_version()} SETS": {"relit": 18.1}}))
+
+    def exporter(command, **kwargs):  # what export.train --export-to does: the net's file and its entry
+        into = Path(command[command.index("--export-to") + 1])
+        (into / "delight.onnx").write_bytes(b"the new net")
+        update_manifest(into, "delight", {"file": "delight.onnx", "sha256": sha256_file(into / "delight.onnx"),
+                                          "metrics": {}, "training": {}})
+
+    monkeypatch.setattr(subprocess, "run", exporter)
+    candidate = tmp_path / "candidate"
+    net_curves.ship(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r",
+                              calibrate_to=None, to=str(candidate)))
+    assert (models / "delight.onnx").read_bytes() == b"the shipped net"  # models/ untouched
+    assert sorted(p.name for p in candidate.iterdir()) == ["delight.onnx", "manifest.json"]
+    entry = json.loads((candidate / "manifest.json").read_text())["models"]["delight"]
+    assert entry["metrics"]["pipeline"] == {"SETS": {"relit": 18.1}} and entry["training"]["run_dir"] == "runs/r"
+    with __import__("pytest").raises(SystemExit, match="exists"):
+        net_curves.ship(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r",
+                                  calibrate_to=None, to=str(candidate)))
+    net_curves.adopt(Namespace(family="delight", candidate=str(candidate)))
+    assert (models / "delight.onnx").read_bytes() == b"the new net"
+    assert json.loads((models / "manifest.json").read_text())["models"]["delight"] == entry
+    (candidate / "delight.onnx").write_bytes(b"another net")
+    with __import__("pytest").raises(SystemExit, match="sha256"):
+        net_curves.adopt(Namespace(family="delight", candidate=str(candidate)))
