@@ -384,8 +384,9 @@ def ship_into(models: Path, run: Path, step: int, scores: dict, reference: dict 
 
 
 def adopt(args) -> None:
-    """Ship a candidate folder (`ship --to`) into models/ as it is: its net's file, checked
-    against its entry's sha256, and the entry."""
+    """Ship a candidate folder (`ship --to`) into models/ (or --into, e.g. a copy of models/ to
+    score it with RELIGHT_MODELS_DIR) as it is: its net's file, checked against its entry's
+    sha256, and the entry."""
     from export.manifest import update_manifest
     from relightcli.nets.manifest import sha256_file
 
@@ -394,9 +395,10 @@ def adopt(args) -> None:
     source = candidate / entry["file"]
     if sha256_file(source) != entry["sha256"]:
         raise SystemExit(f"{source} does not match its entry's sha256: make the candidate again (`ship --to`)")
-    shutil.copy2(source, ROOT / "models" / entry["file"])
-    update_manifest(ROOT / "models", args.family, entry)
-    print(f"models/{entry['file']}: {args.family} from {candidate}")
+    models = Path(getattr(args, "into", None) or ROOT / "models")
+    shutil.copy2(source, models / entry["file"])
+    update_manifest(models, args.family, entry)
+    print(f"{models / entry['file']}: {args.family} from {candidate}")
 
 
 def main() -> None:
@@ -433,6 +435,7 @@ def main() -> None:
     adopting = sub.add_parser("adopt", help="ship a candidate folder (`ship --to`) into models/")
     adopting.add_argument("candidate")
     adopting.add_argument("--family", choices=sorted(CONFIGS), default="delight")
+    adopting.add_argument("--into", help="a models folder other than models/ (a copy, to score the candidate)")
     args = parser.parse_args()
     if args.command == "train":
         args.steps = args.steps or STEPS[args.family]

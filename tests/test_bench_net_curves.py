@@ -250,6 +250,11 @@ def test_a_candidate_ships_into_its_own_folder_and_adopt_ships_it_as_it_is(tmp_p
     with __import__("pytest").raises(SystemExit, match="exists"):
         net_curves.ship(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r",
                                   calibrate_to=None, to=str(candidate)))
+    copy = tmp_path / "models_copy"
+    __import__("shutil").copytree(models, copy)
+    net_curves.adopt(Namespace(family="delight", candidate=str(candidate), into=str(copy)))
+    assert (copy / "delight.onnx").read_bytes() == b"the new net"
+    assert (models / "delight.onnx").read_bytes() == b"the shipped net"
     net_curves.adopt(Namespace(family="delight", candidate=str(candidate)))
     assert (models / "delight.onnx").read_bytes() == b"the new net"
     assert json.loads((models / "manifest.json").read_text())["models"]["delight"] == entry
