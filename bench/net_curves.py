@@ -395,7 +395,7 @@ def adopt(args) -> None:
     source = candidate / entry["file"]
     if sha256_file(source) != entry["sha256"]:
         raise SystemExit(f"{source} does not match its entry's sha256: make the candidate again (`ship --to`)")
-    models = Path(getattr(args, "into", None) or ROOT / "models")
+    models = Path(args.into or ROOT / "models")
     shutil.copy2(source, models / entry["file"])
     update_manifest(models, args.family, entry)
     print(f"{models / entry['file']}: {args.family} from {candidate}")

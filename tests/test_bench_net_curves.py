@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 import sys
 from pathlib import Path
+
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import net_curves  # noqa: E402
@@ -57,7 +61,7 @@ def test_runs_of_another_length_or_crop_are_named_for_it():
     assert command[-2:] == ["--set", "loss.level=100"] and merge_overrides([command[-1]]) == {"loss": {"level": 100}}
     # a long value (a list of lights held out) is named by a digest
     assert net_curves.setting_name('exclude_lights=["a_1k.hdr", "b_1k.hdr"]') == "exclude_lights" + \
-        __import__("hashlib").sha256(b'["a_1k.hdr", "b_1k.hdr"]').hexdigest()[:6]
+        hashlib.sha256(b'["a_1k.hdr", "b_1k.hdr"]').hexdigest()[:6]
 
 
 def test_a_run_is_exported_for_scoring_with_its_own_config(tmp_path, monkeypatch):
@@ -167,7 +171,7 @@ def test_a_calibrated_ship_brings_the_new_nets_level_to_the_shipped_nets(tmp_pat
     version = net_curves.pipeline_version()
     # the net as it is was scored, not calibrated: ship --calibrate-to wants the calibrated net's scores
     (run / "pipeline.json").write_text(json.dumps({f"1000 {version} SETS": {"relit": 17.8}}))
-    with __import__("pytest").raises(SystemExit, match="calibrated to models"):
+    with pytest.raises(SystemExit, match="calibrated to models"):
         net_curves.ship(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r",
                                   calibrate_to="models"))
     (run / "pipeline.json").write_text(json.dumps({f"1000 {version}+calibrated-to:models SETS": {"relit": 17.9}}))
@@ -194,7 +198,7 @@ def test_a_calibrated_ship_brings_the_new_nets_level_to_the_shipped_nets(tmp_pat
     assert calibration["measured"]["samples"] == 200 and calibration["reference"] == "models"
     shipped = json.loads((tmp_path / "models" / "manifest.json").read_text())["models"]["delight"]
     assert shipped["metrics"]["pipeline"] == {"SETS": {"relit": 17.9}}  # the calibrated net's scores
-    with __import__("pytest").raises(SystemExit, match="de-lighting"):
+    with pytest.raises(SystemExit, match="de-lighting"):
         net_curves.level_reference(Namespace(family="ao", data="DATA", calibrate_to="models"))
 
 
@@ -247,17 +251,17 @@ def test_a_candidate_ships_into_its_own_folder_and_adopt_ships_it_as_it_is(tmp_p
     assert sorted(p.name for p in candidate.iterdir()) == ["delight.onnx", "manifest.json"]
     entry = json.loads((candidate / "manifest.json").read_text())["models"]["delight"]
     assert entry["metrics"]["pipeline"] == {"SETS": {"relit": 18.1}} and entry["training"]["run_dir"] == "runs/r"
-    with __import__("pytest").raises(SystemExit, match="exists"):
+    with pytest.raises(SystemExit, match="exists"):
         net_curves.ship(Namespace(family="delight", data="DATA", runs=str(tmp_path / "runs"), run="r",
                                   calibrate_to=None, to=str(candidate)))
     copy = tmp_path / "models_copy"
-    __import__("shutil").copytree(models, copy)
+    shutil.copytree(models, copy)
     net_curves.adopt(Namespace(family="delight", candidate=str(candidate), into=str(copy)))
     assert (copy / "delight.onnx").read_bytes() == b"the new net"
     assert (models / "delight.onnx").read_bytes() == b"the shipped net"
-    net_curves.adopt(Namespace(family="delight", candidate=str(candidate)))
+    net_curves.adopt(Namespace(family="delight", candidate=str(candidate), into=None))
     assert (models / "delight.onnx").read_bytes() == b"the new net"
     assert json.loads((models / "manifest.json").read_text())["models"]["delight"] == entry
     (candidate / "delight.onnx").write_bytes(b"another net")
-    with __import__("pytest").raises(SystemExit, match="sha256"):
-        net_curves.adopt(Namespace(family="delight", candidate=str(candidate)))
+    with pytest.raises(SystemExit, match="sha256"):
+        net_curves.adopt(Namespace(family="delight", candidate=str(candidate), into=None))
